@@ -1,0 +1,3 @@
+"""gpupro: a JAX laboratory for real-time rendering techniques."""
+
+from gpupro import scene
