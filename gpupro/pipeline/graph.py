@@ -1,0 +1,310 @@
+"""Frame graph: render passes wired by the names of the buffers they consume and produce.
+
+Modelled on Falcor's render graphs and on Shader Shaker (Delva, Hamaide and Ladlani, "Semantic-Based
+Shader Generation Using Shader Shaker", GPU Pro 6, Part VII, Chapter 2). Shader Shaker tags each code
+fragment's inputs and outputs with user-defined semantics (``ViewSpaceNormal``, ``LitColor``) and links
+fragments by matching an output semantic to an input semantic, walking back from the requested output
+(Sections 2.4-2.5). Here a :class:`Pass` plays the fragment, a buffer name plays the semantic, and a
+:class:`Pipeline` plays the generator:
+
+- passes are ordered by a topological sort of the name graph (ties keep the order they were given, so
+  the order is deterministic);
+- like Shader Shaker's debugging trick of regenerating a shader with an intermediate semantic as its
+  output (Section 2.7), any intermediate buffer can be requested, and only the passes it needs run;
+- one requested output tuple becomes one jitted pure function ``frame(params, scene)``.
+
+Departures from the source: the graph is linked once and fully (every consumed buffer must have a
+producer) rather than searched per output, so a missing link is reported when the pipeline is built,
+not when a particular output happens to be requested.
+
+Parameters. ``init_params()`` returns ``{pass name: default params}`` for the passes whose ``params`` is
+not ``None``; passes without params are omitted and receive ``None``. A ``params`` argument must have
+exactly those keys: a missing or extra key is a :class:`PipelineError` naming it, so that a typo in a
+fitting script is caught rather than silently falling back to defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import inspect
+import types
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+COUNTERS = "counters"
+
+
+class PipelineError(ValueError):
+    """A pipeline is wired wrongly, or a pass or a ``params`` argument does not match its declaration."""
+
+
+def _names(value: str | Sequence[str], what: str, owner: str) -> tuple[str, ...]:
+    """A tuple of buffer names; a bare string is one name (``tuple("xy")`` would silently split it)."""
+    names = (value,) if isinstance(value, str) else tuple(value)
+    for n in names:
+        if not isinstance(n, str) or not n:
+            raise PipelineError(f"{owner}: {what} must be non-empty strings, got {n!r}")
+    duplicates = sorted({n for n in names if names.count(n) > 1})
+    if duplicates:
+        raise PipelineError(f"{owner}: {what} {duplicates} listed more than once")
+    return names
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Pass:
+    """One node of the frame graph.
+
+    ``fn(params, inputs, scene, **options)`` receives this pass's params (``None`` if it has none), a
+    dict holding exactly the declared ``inputs``, and the scene pytree; it returns a dict holding exactly
+    the declared ``outputs``, or ``(outputs, counters)`` with ``counters`` a dict of scalar work counters.
+    ``options`` are static, hashable and passed as Python values (never traced), so they may set shapes.
+    ``params`` is the default differentiable pytree of float arrays, or ``None``.
+    """
+
+    name: str
+    fn: Callable[..., Any]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    options: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    params: Any = None
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise PipelineError(f"pass name must be a non-empty string, got {self.name!r}")
+        owner = f"pass {self.name!r}"
+        object.__setattr__(self, "inputs", _names(self.inputs, "inputs", owner))
+        object.__setattr__(self, "outputs", _names(self.outputs, "outputs", owner))
+        if COUNTERS in self.outputs:
+            raise PipelineError(f"{owner}: the buffer name {COUNTERS!r} is reserved for work counters")
+        options = dict(self.options)
+        for key, value in options.items():
+            try:
+                hash(value)
+            except TypeError:
+                raise PipelineError(f"{owner}: option {key}={value!r} is not hashable; static options "
+                                    "must be (use a tuple, or put arrays in params)") from None
+        # Read-only so that a pipeline's passes cannot change behind its cached jitted frames.
+        object.__setattr__(self, "options", types.MappingProxyType(options))
+        self._check_signature()
+
+    def _check_signature(self):
+        """Fail now, naming the pass, if ``fn`` cannot take ``(params, inputs, scene, **options)``."""
+        try:
+            signature = inspect.signature(self.fn)
+        except (TypeError, ValueError):  # some builtins and C callables expose no signature
+            return
+        try:
+            signature.bind(None, {}, None, **self.options)
+        except TypeError as e:
+            raise PipelineError(f"pass {self.name!r}: fn cannot be called as fn(params, inputs, scene, "
+                                f"**{dict(self.options)}): {e}") from None
+
+    def run(self, params: Any, buffers: Mapping[str, jax.Array], scene: Any):
+        """Call ``fn`` on this pass's declared inputs; return ``(outputs, counters)`` after checking the
+        returned buffers against the declared ``outputs``."""
+        result = self.fn(params, {k: buffers[k] for k in self.inputs}, scene, **self.options)
+        outputs, counters = result if isinstance(result, tuple) and len(result) == 2 else (result, {})
+        if not isinstance(outputs, Mapping) or not isinstance(counters, Mapping):
+            raise PipelineError(f"pass {self.name!r} must return a dict of buffers or (buffers, counters) "
+                                f"dicts, got {type(result).__name__}")
+        extra = sorted(set(outputs) - set(self.outputs))
+        missing = [n for n in self.outputs if n not in outputs]
+        if extra or missing:
+            raise PipelineError(f"pass {self.name!r} declared outputs {list(self.outputs)} but returned "
+                                f"undeclared {extra} and is missing {missing}")
+        for key, value in counters.items():
+            if jnp.ndim(value) != 0:
+                raise PipelineError(f"pass {self.name!r}: counter {key!r} must be a scalar, "
+                                    f"got shape {jnp.shape(value)}")
+        return dict(outputs), dict(counters)
+
+
+class Pipeline:
+    """Passes wired by buffer names, in a deterministic topological order.
+
+    ``Pipeline(passes, outputs=None)``: ``outputs`` are the buffers returned by default (``None``: every
+    buffer that no pass consumes). Wiring errors raise :class:`PipelineError` naming the passes and
+    buffers involved. Call it as ``pipeline(params, scene, outputs=...)`` or get the jitted function
+    with ``pipeline.frame(outputs)``.
+    """
+
+    def __init__(self, passes: Sequence[Pass], *, outputs: str | Sequence[str] | None = None):
+        passes = tuple(passes)
+        seen: dict[str, Pass] = {}
+        for p in passes:
+            if not isinstance(p, Pass):
+                raise PipelineError(f"pipeline passes must be Pass instances, got {type(p).__name__}")
+            if p.name in seen:
+                raise PipelineError(f"two passes are named {p.name!r}; pass names must be unique")
+            seen[p.name] = p
+
+        producer: dict[str, str] = {}
+        for p in passes:
+            for b in p.outputs:
+                if b in producer:
+                    raise PipelineError(f"buffer {b!r} is produced by both pass {producer[b]!r} "
+                                        f"and pass {p.name!r}")
+                producer[b] = p.name
+        for p in passes:
+            for b in p.inputs:
+                if b not in producer:
+                    raise PipelineError(f"pass {p.name!r} consumes buffer {b!r}, which no pass produces; "
+                                        f"available buffers: {sorted(producer)}")
+
+        self._passes = _toposort(passes, producer)
+        self._by_name = {p.name: p for p in self._passes}
+        self._producer = producer
+        consumed = {b for p in passes for b in p.inputs}
+        sinks = tuple(b for p in self._passes for b in p.outputs if b not in consumed)
+        self._outputs = sinks if outputs is None else self._check_requested(outputs)
+        self._frames: dict[tuple[str, ...], Callable] = {}
+
+    @property
+    def passes(self) -> tuple[Pass, ...]:
+        """The passes in execution order."""
+        return self._passes
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        """The buffers a frame returns when no outputs are requested."""
+        return self._outputs
+
+    @property
+    def buffers(self) -> tuple[str, ...]:
+        """Every buffer name, in the order the passes produce them."""
+        return tuple(b for p in self._passes for b in p.outputs)
+
+    def __getitem__(self, name: str) -> Pass:
+        """The pass called ``name``."""
+        if name not in self._by_name:
+            raise PipelineError(f"no pass named {name!r}; passes: {list(self._by_name)}")
+        return self._by_name[name]
+
+    def _check_requested(self, outputs: str | Sequence[str]) -> tuple[str, ...]:
+        """Requested output names as a tuple, each produced by some pass."""
+        requested = _names(outputs, "requested outputs", "pipeline")
+        unknown = [b for b in requested if b not in self._producer]
+        if unknown:
+            raise PipelineError(f"requested output(s) {unknown} are produced by no pass; "
+                                f"available buffers: {sorted(self._producer)}")
+        return requested
+
+    def init_params(self) -> dict[str, Any]:
+        """Default params ``{pass name: pytree of float arrays}``; passes with ``params=None`` are omitted."""
+        return {p.name: jax.tree.map(jnp.asarray, p.params) for p in self._passes if p.params is not None}
+
+    def _needed(self, requested: tuple[str, ...]) -> tuple[Pass, ...]:
+        """The passes that ``requested`` depends on, in execution order."""
+        needed: set[str] = set()
+        stack = [self._producer[b] for b in requested]
+        while stack:
+            name = stack.pop()
+            if name not in needed:
+                needed.add(name)
+                stack.extend(self._producer[b] for b in self._by_name[name].inputs)
+        return tuple(p for p in self._passes if p.name in needed)
+
+    def _check_params(self, params: Any):
+        """Strict key check: a typo must not silently fall back to a pass's defaults."""
+        if not isinstance(params, Mapping):
+            raise PipelineError(f"params must be a dict keyed by pass name, got {type(params).__name__}")
+        expected = [p.name for p in self._passes if p.params is not None]
+        missing = [n for n in expected if n not in params]
+        extra = sorted(set(params) - set(expected))
+        if missing or extra:
+            raise PipelineError(f"params is missing entries for passes {missing} and has unexpected entries "
+                                f"{extra}; expected exactly {expected} (see Pipeline.init_params())")
+
+    def frame(self, outputs: str | Sequence[str] | None = None) -> Callable[[Any, Any], dict[str, Any]]:
+        """The jitted ``frame(params, scene) -> {buffer: array, "counters": {pass: {name: scalar}}}``.
+
+        Returns the requested buffers (default: ``self.outputs``) and the counters of every pass that ran;
+        only the passes those buffers need run. Cached per requested output tuple.
+        """
+        requested = self._outputs if outputs is None else self._check_requested(outputs)
+        if requested not in self._frames:
+            needed = self._needed(requested)
+
+            def frame(params, scene):
+                self._check_params(params)  # runs at trace time: params' keys are part of its structure
+                buffers: dict[str, Any] = {}
+                counters: dict[str, dict[str, Any]] = {}
+                for p in needed:
+                    produced, counters[p.name] = p.run(params.get(p.name), buffers, scene)
+                    buffers.update(produced)
+                return {**{b: buffers[b] for b in requested}, COUNTERS: counters}
+
+            self._frames[requested] = jax.jit(frame)
+        return self._frames[requested]
+
+    def __call__(self, params: Any, scene: Any, *, outputs: str | Sequence[str] | None = None):
+        """Run one frame: ``self.frame(outputs)(params, scene)``."""
+        return self.frame(outputs)(params, scene)
+
+    def replace(self, name: str, new_pass: Pass) -> Pipeline:
+        """A new pipeline with pass ``name`` swapped for ``new_pass`` (e.g. brute-force vs tiled shading)."""
+        old = self[name]
+        return Pipeline([new_pass if p is old else p for p in self._passes], outputs=self._outputs)
+
+    def with_options(self, name: str, **options: Any) -> Pipeline:
+        """A new pipeline in which pass ``name`` has ``options`` updated (others kept)."""
+        old = self[name]
+        return self.replace(name, dataclasses.replace(old, options={**old.options, **options}))
+
+    def describe(self) -> str:
+        """Passes in execution order with their inputs → outputs, options and whether they have params."""
+        lines = [f"Pipeline: {len(self._passes)} passes, outputs {list(self._outputs)}"]
+        for i, p in enumerate(self._passes, 1):
+            line = f"  {i}. {p.name}: {', '.join(p.inputs) or '-'} -> {', '.join(p.outputs)}"
+            if p.options:
+                line += " {" + ", ".join(f"{k}={v!r}" for k, v in p.options.items()) + "}"
+            if p.params is not None:
+                line += " [params]"
+            lines.append(line)
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return self.describe()
+
+
+def _toposort(passes: tuple[Pass, ...], producer: Mapping[str, str]) -> tuple[Pass, ...]:
+    """Kahn's algorithm taking, among ready passes, the one given first, so the order is stable."""
+    index = {p.name: i for i, p in enumerate(passes)}
+    deps = {p.name: {producer[b] for b in p.inputs} for p in passes}
+    users: dict[str, list[str]] = {p.name: [] for p in passes}
+    for name, ds in deps.items():
+        for d in ds:
+            users[d].append(name)
+    remaining = {name: len(ds) for name, ds in deps.items()}
+    ready = [index[name] for name, n in remaining.items() if n == 0]
+    heapq.heapify(ready)
+    order = []
+    while ready:
+        p = passes[heapq.heappop(ready)]
+        order.append(p)
+        del remaining[p.name]
+        for u in users[p.name]:
+            remaining[u] -= 1
+            if remaining[u] == 0:
+                heapq.heappush(ready, index[u])
+    if remaining:
+        cycle = _find_cycle(set(remaining), deps)
+        by_name = {p.name: p for p in passes}
+        links = [b for src, dst in zip(cycle, cycle[1:]) for b in by_name[dst].inputs if producer[b] == src]
+        raise PipelineError(f"the passes form a cycle: {' -> '.join(cycle)} (through buffers {links})")
+    return tuple(order)
+
+
+def _find_cycle(stuck: set[str], deps: Mapping[str, set[str]]) -> list[str]:
+    """One cycle among passes Kahn's algorithm could not order (each has a dependency among them)."""
+    path = [min(stuck)]
+    while True:
+        nxt = min(deps[path[-1]] & stuck)
+        if nxt in path:
+            cycle = path[path.index(nxt):]
+            return list(reversed(cycle)) + [cycle[-1]]
+        path.append(nxt)

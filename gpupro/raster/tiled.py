@@ -1,0 +1,194 @@
+"""Tiled software rasterizer: bin triangles into screen tiles, then resolve each tile.
+
+Source: the sort-middle tiled structure of hardware and of nvdiffrast's CUDA rasterizer (setup →
+bin → tile → fine), with the triangle-versus-tile test of conservative rasterization (GPU Gems 2,
+ch. 42, Hasselgren, Akenine-Möller & Ohlsson): a tile is kept for a triangle only if, for every
+edge, the edge function is non-negative somewhere on the tile. An edge function is linear in the
+pixel position, so its maximum over the tile's pixel centres is at a corner:
+
+    max_tile E = max(a (x0 - x_r), a (x1 - x_r)) + max(b (y0 - y_r), b (y1 - y_r)) + c.
+
+The same test bounds the window depth (linear in the pixel) against [0, 1], so tiles that only
+see the part of a triangle beyond the near or far plane are dropped too.
+
+Binning is count → exclusive scan → fill with fixed capacities, and no capacity ever loses data:
+
+1. every visible triangle enumerates the tiles of its clipped bounding box; the (triangle, tile)
+   candidate pairs of all triangles are numbered by an exclusive scan of the per-triangle counts and
+   processed ``pair_capacity`` at a time (a ``lax.while_loop``: more pairs only mean more passes);
+2. pairs that pass the tile test are sorted stably by tile, so each tile's list is in triangle order;
+3. each tile's list is cut into chunks of ``tile_capacity`` triangles; chunks are resolved
+   ``chunk_batch`` at a time against the tile's pixels (again a while loop) and merged into the
+   z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower triangle id.
+
+Counters report the work and every capacity exceeded (pairs and tiles past capacity, passes run).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+
+from gpupro.raster.setup import TriangleSetup, evaluate
+
+NO_TRIANGLE = jnp.iinfo(jnp.int32).max
+
+
+def default_pair_capacity(num_faces: int, num_tiles: int) -> int:
+    """Candidate pairs handled per binning pass: a power of two ≥ 4 F and ≥ 4 tiles."""
+    return 1 << max(10, math.ceil(math.log2(max(4 * num_faces, 4 * num_tiles, 1))))
+
+
+def merge_depth(zbuf: jax.Array, ids: jax.Array, where: jax.Array, depth: jax.Array, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Merges fragments into a z-buffer by (depth, triangle id), lexicographically smallest wins.
+
+    ``zbuf`` float32 [N, ...], ``ids`` int32 [N, ...]; ``where`` int32 [B] rows to merge into (rows
+    past N are dropped), ``depth`` [B, ...] (inf where no fragment), ``tri`` [B, ...].
+    """
+    new_z = zbuf.at[where].min(depth, mode="drop")
+    kept = jnp.where(zbuf == new_z, ids, NO_TRIANGLE)
+    landed = (depth == new_z.at[where].get(mode="fill", fill_value=jnp.inf)) & (depth < jnp.inf)
+    candidate = jnp.where(landed, tri, NO_TRIANGLE)
+    return new_z, kept.at[where].min(candidate, mode="drop")
+
+
+def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Array, tile: int) -> jax.Array:
+    """Whether triangles ``tri`` [P] may cover a pixel centre of the tiles whose corner pixels are (x0, y0)."""
+    e = setup.edges[tri]  # [P, 3, 3]
+    o = setup.edge_origin[tri]  # [P, 3, 2]
+    lo_x, hi_x = (x0 + 0.5)[:, None], (x0 + tile - 0.5)[:, None]
+    lo_y, hi_y = (y0 + 0.5)[:, None], (y0 + tile - 0.5)[:, None]
+    a, b, c = e[..., 0], e[..., 1], e[..., 2]
+    ax = jnp.stack([a * (lo_x - o[..., 0]), a * (hi_x - o[..., 0])])
+    by = jnp.stack([b * (lo_y - o[..., 1]), b * (hi_y - o[..., 1])])
+    edge_max = jnp.max(ax, axis=0) + jnp.max(by, axis=0) + c
+    # Relative slack: the per-pixel evaluation may round differently (e.g. fused multiply-adds).
+    magnitude = jnp.max(jnp.abs(ax), axis=0) + jnp.max(jnp.abs(by), axis=0) + jnp.abs(c)
+    slack = 1e-5 * magnitude
+    edges_ok = jnp.all(edge_max >= -slack, axis=-1)
+    d = setup.depth_coef[tri]
+    depth_corners = 0.5 + jnp.stack([jnp.sum((ax[i] + by[j] + c) * d, axis=-1) for i in (0, 1) for j in (0, 1)])
+    depth_slack = 1e-5 + 1e-5 * jnp.sum(magnitude * jnp.abs(d), axis=-1)
+    depth_ok = (jnp.max(depth_corners, axis=0) >= -depth_slack) & (jnp.min(depth_corners, axis=0) <= 1 + depth_slack)
+    return edges_ok & depth_ok
+
+
+@functools.partial(
+    jax.jit,
+    static_argnames=("resolution", "tile", "tile_capacity", "pair_capacity", "chunk_batch"),
+)
+def rasterize_tiled(
+    setup: TriangleSetup,
+    *,
+    resolution: tuple[int, int],
+    tile: int,
+    tile_capacity: int,
+    pair_capacity: int,
+    chunk_batch: int,
+) -> tuple[jax.Array, jax.Array, dict]:
+    """Resolves visibility with tiles. Returns ``(triangle_id int32 [H, W], depth float32 [H, W], counters)``.
+
+    ``triangle_id`` is -1 and ``depth`` is 1 where nothing is covered.
+    """
+    height, width = resolution
+    tiles_y, tiles_x = -(-height // tile), -(-width // tile)
+    num_tiles = tiles_x * tiles_y
+    num_faces = setup.visible.shape[0]
+
+    # Tile range of each triangle's bounding box (pixel centres at half-integers).
+    bbox = setup.bbox
+    tx0 = jnp.clip(jnp.floor((bbox[:, 0] - 0.5) / tile), 0, tiles_x - 1).astype(jnp.int32)
+    ty0 = jnp.clip(jnp.floor((bbox[:, 1] - 0.5) / tile), 0, tiles_y - 1).astype(jnp.int32)
+    tx1 = jnp.clip(jnp.floor((bbox[:, 2] - 0.5) / tile), 0, tiles_x - 1).astype(jnp.int32)
+    ty1 = jnp.clip(jnp.floor((bbox[:, 3] - 0.5) / tile), 0, tiles_y - 1).astype(jnp.int32)
+    span_x = tx1 - tx0 + 1
+    per_triangle = jnp.where(setup.visible & (bbox[:, 2] >= bbox[:, 0]) & (bbox[:, 3] >= bbox[:, 1]), span_x * (ty1 - ty0 + 1), 0)
+    pair_end = jnp.cumsum(per_triangle)
+    pair_start = pair_end - per_triangle
+    total_pairs = pair_end[-1] if num_faces else jnp.int32(0)
+
+    slots = jnp.arange(pair_capacity, dtype=jnp.int32)
+    chunk_slots = jnp.arange(chunk_batch, dtype=jnp.int32)
+    lane = jnp.arange(tile_capacity, dtype=jnp.int32)
+    pix = jnp.arange(tile, dtype=jnp.float32) + 0.5
+
+    def bin_pass(state):
+        base, zbuf, ids, stats = state
+        k = base + slots
+        in_range = k < total_pairs
+        # Which triangle owns slot k: mark each triangle's first slot, then a running max.
+        local_slot = pair_start - base
+        marks = jnp.full((pair_capacity,), -1, jnp.int32)
+        starts_here = (per_triangle > 0) & (pair_end > base) & (local_slot < pair_capacity)
+        marks = marks.at[jnp.where(starts_here, jnp.maximum(local_slot, 0), pair_capacity)].max(
+            jnp.arange(num_faces, dtype=jnp.int32), mode="drop"
+        )
+        # A triangle whose pairs began in an earlier pass owns the first slots of this one.
+        carried = jnp.searchsorted(pair_end, base, side="right").astype(jnp.int32)
+        owner = jnp.maximum(jax.lax.cummax(marks), carried)
+        owner = jnp.minimum(owner, max(num_faces - 1, 0))
+        local = k - pair_start[owner]
+        tx = tx0[owner] + local % span_x[owner]
+        ty = ty0[owner] + local // span_x[owner]
+        keep = in_range & _tile_test(setup, owner, (tx * tile).astype(jnp.float32), (ty * tile).astype(jnp.float32), tile)
+        tile_key = jnp.where(keep, ty * tiles_x + tx, num_tiles)
+        tile_key, tri_sorted = jax.lax.sort((tile_key, owner), num_keys=1, is_stable=True)
+
+        counts = jnp.zeros((num_tiles,), jnp.int32).at[tile_key].add(1, mode="drop")
+        tile_start = jnp.cumsum(counts) - counts
+        chunks = -(-counts // tile_capacity)
+        chunk_end = jnp.cumsum(chunks)
+        chunk_start = chunk_end - chunks
+        total_chunks = chunk_end[-1]
+
+        def chunk_pass(chunk_state):
+            first, zbuf, ids = chunk_state
+            g = first + chunk_slots
+            t = jnp.minimum(jnp.searchsorted(chunk_end, g, side="right").astype(jnp.int32), num_tiles - 1)
+            j = g - chunk_start[t]
+            position = j[:, None] * tile_capacity + lane[None, :]  # [B, C]
+            live = (g < total_chunks)[:, None] & (position < counts[t][:, None])
+            cand = jnp.where(live, tri_sorted[jnp.minimum(tile_start[t][:, None] + position, pair_capacity - 1)], -1)
+            px = ((t % tiles_x) * tile).astype(jnp.float32)[:, None, None] + pix[None, None, :]
+            py = ((t // tiles_x) * tile).astype(jnp.float32)[:, None, None] + pix[None, :, None]
+            covered, depth = evaluate(setup, cand[:, :, None, None], px[:, None], py[:, None])  # [B, C, T, T]
+            depth = jnp.where(covered, depth, jnp.inf)
+            best = jnp.min(depth, axis=1)
+            winner = jnp.min(jnp.where(depth == best[:, None], cand[:, :, None, None], NO_TRIANGLE), axis=1)
+            target = jnp.where(g < total_chunks, t, num_tiles)
+            zbuf, ids = merge_depth(zbuf, ids, target, best, winner)
+            return first + chunk_batch, zbuf, ids
+
+        _, zbuf, ids = jax.lax.while_loop(lambda s: s[0] < total_chunks, chunk_pass, (jnp.int32(0), zbuf, ids))
+        tile_counts, passes, chunks_run = stats
+        stats = (tile_counts + counts, passes + 1, chunks_run + total_chunks)
+        return base + pair_capacity, zbuf, ids, stats
+
+    zbuf = jnp.full((num_tiles, tile, tile), jnp.inf, jnp.float32)
+    ids = jnp.full((num_tiles, tile, tile), NO_TRIANGLE, jnp.int32)
+    stats = (jnp.zeros((num_tiles,), jnp.int32), jnp.int32(0), jnp.int32(0))
+    _, zbuf, ids, stats = jax.lax.while_loop(lambda s: s[0] < total_pairs, bin_pass, (jnp.int32(0), zbuf, ids, stats))
+
+    def untile(buf):
+        buf = buf.reshape(tiles_y, tiles_x, tile, tile).transpose(0, 2, 1, 3)
+        return buf.reshape(tiles_y * tile, tiles_x * tile)[:height, :width]
+
+    depth = untile(zbuf)
+    triangle_id = untile(ids)
+    covered = triangle_id != NO_TRIANGLE
+    tile_counts, passes, chunks_run = stats
+    counters = {
+        "triangles_after_culling": jnp.sum(setup.visible & (per_triangle > 0)).astype(jnp.int32),
+        "bbox_tile_pairs": total_pairs,
+        "tile_triangle_pairs": jnp.sum(tile_counts),
+        "max_triangles_per_tile": jnp.max(tile_counts),
+        "tile_overflow_pairs": jnp.sum(jnp.maximum(tile_counts - tile_capacity, 0)),
+        "tiles_overflowed": jnp.sum(tile_counts > tile_capacity).astype(jnp.int32),
+        "pair_overflow": jnp.maximum(total_pairs - pair_capacity, 0),
+        "binning_passes": passes,
+        "tile_chunks": chunks_run,
+    }
+    return jnp.where(covered, triangle_id, -1), jnp.where(covered, depth, 1.0), counters
