@@ -156,6 +156,8 @@ def reference(
 ) -> Fragments:
     """Brute-force rasterization with the same inputs and outputs as :func:`rasterize`.
 
+    ``clip`` float32 [V, 4], ``faces`` int32 [F, 3], ``resolution`` (height, width); returns
+    :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics).
     Every triangle is tested at every pixel; ``counters`` has only ``pixel_triangle_tests``.
     """
     clip = jnp.asarray(clip, jnp.float32)

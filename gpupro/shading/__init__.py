@@ -25,3 +25,5 @@ from gpupro.shading.light_falloff import (
     incident_light,
     spot_falloff,
 )
+from gpupro.shading.deferred import DEFERRED_INPUTS, accumulate_lights, shade_deferred, shade_surfaces
+from gpupro.shading.forward import shade_forward

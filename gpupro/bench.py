@@ -1,0 +1,89 @@
+"""Small benchmark helpers shared by ``experiments/bench_*.py``.
+
+Compile time and run time are measured separately: the first call (tracing and compilation
+included) is timed on its own, then ``repeats`` calls are timed one by one, each waiting with
+``jax.block_until_ready`` on every output so that asynchronous dispatch does not hide work.
+"""
+
+from __future__ import annotations
+
+import os
+import resource
+import statistics
+import sys
+import time
+from typing import Any, Callable
+
+import jax
+
+
+def time_function(fn: Callable[..., Any], *args, repeats: int = 10, warmup: int = 1, **kwargs) -> dict:
+    """Times ``fn(*args, **kwargs)``.
+
+    The first of ``warmup`` (≥ 1) untimed-for-the-statistics calls gives ``compile_s``; the
+    following ``repeats`` calls give ``run_ms_median``, ``run_ms_min`` and ``run_ms_max``.
+    Returns those four numbers, ``repeats``, ``run_ms`` (every timed call) and ``result`` (the
+    output of the last call).
+    """
+    if warmup < 1 or repeats < 1:
+        raise ValueError(f"time_function: warmup and repeats must be >= 1, got {warmup}, {repeats}")
+
+    def call():
+        start = time.perf_counter()
+        out = jax.block_until_ready(fn(*args, **kwargs))
+        return out, time.perf_counter() - start
+
+    result, compile_s = call()
+    for _ in range(warmup - 1):
+        result, _ = call()
+    run_ms = []
+    for _ in range(repeats):
+        result, seconds = call()
+        run_ms.append(1e3 * seconds)
+    return {
+        "compile_s": compile_s,
+        "run_ms_median": statistics.median(run_ms),
+        "run_ms_min": min(run_ms),
+        "run_ms_max": max(run_ms),
+        "repeats": repeats,
+        "run_ms": run_ms,
+        "result": result,
+    }
+
+
+def _cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return "unknown"
+
+
+def device_info() -> dict:
+    """JAX version, backend, device kind (e.g. ``"NVIDIA H100 80GB HBM3"`` or ``"cpu"``), device and CPU counts."""
+    devices = jax.devices()
+    return {
+        "jax_version": jax.__version__,
+        "backend": jax.default_backend(),
+        "device_kind": devices[0].device_kind,
+        "num_devices": len(devices),
+        "cpu_count": os.cpu_count(),
+        "cpu_model": _cpu_model(),
+    }
+
+
+def peak_memory_bytes() -> dict:
+    """Peak memory since the process started: ``{"bytes": n, "source": ...}``.
+
+    ``source`` is ``"device peak_bytes_in_use"`` where the default device reports memory
+    statistics (GPUs), else ``"process max RSS"`` (host memory of the whole process).
+    """
+    stats = jax.devices()[0].memory_stats()
+    if stats and "peak_bytes_in_use" in stats:
+        return {"bytes": int(stats["peak_bytes_in_use"]), "source": "device peak_bytes_in_use"}
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # Linux reports KiB, macOS bytes.
+    return {"bytes": int(rss if sys.platform == "darwin" else rss * 1024), "source": "process max RSS"}
