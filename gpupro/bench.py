@@ -20,8 +20,9 @@ import jax
 def time_function(fn: Callable[..., Any], *args, repeats: int = 10, warmup: int = 1, **kwargs) -> dict:
     """Times ``fn(*args, **kwargs)``.
 
-    The first of ``warmup`` (≥ 1) untimed-for-the-statistics calls gives ``compile_s``; the
-    following ``repeats`` calls give ``run_ms_median``, ``run_ms_min`` and ``run_ms_max``.
+    ``warmup`` (≥ 1) calls are left out of the statistics; the first of them, tracing and
+    compilation included, gives ``compile_s``. The next ``repeats`` calls give ``run_ms_median``,
+    ``run_ms_min`` and ``run_ms_max``.
     Returns those four numbers, ``repeats``, ``run_ms`` (every timed call) and ``result`` (the
     output of the last call).
     """

@@ -35,7 +35,8 @@ def main(argv=None) -> int:
         elif args.command == "run":
             from gpupro.runner import run_experiment
 
-            report = run_experiment(args.config, out_dir=args.out, overrides=args.overrides)
+            # sys.stderr as it is now: the functions' defaults were bound when they were imported
+            report = run_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr)
             ms = report["frame_ms"]
             print(f"{report['name']}: {report['triangles']} triangles, {report['lights']} lights, "
                   f"{report['resolution'][0]}x{report['resolution'][1]} on {report['device']['device_kind']}: "
@@ -44,7 +45,7 @@ def main(argv=None) -> int:
         else:
             from gpupro.fit import fit_experiment
 
-            result = fit_experiment(args.config, out_dir=args.out, overrides=args.overrides)
+            result = fit_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr)
             print(f"{result['name']}: loss {result['loss'][0]:.3g} -> {result['loss'][-1]:.3g} in {result['steps']} steps")
             print(f"wrote {', '.join(result['outputs'])} in {args.out}")
     except (ValueError, FileNotFoundError, OSError) as error:

@@ -67,6 +67,11 @@ def _string(v):
     return isinstance(v, str) and v != "", "a non-empty string"
 
 
+def _file_stem(v):
+    ok = _string(v)[0] and not any(c in v for c in "/\\") and v not in (".", "..")
+    return ok, "a non-empty file name without '/' or '\\' (output files are named after it)"
+
+
 def _boolean(v):
     return isinstance(v, bool), "true or false"
 
@@ -93,7 +98,7 @@ LIGHT_KEYS = {"position": _vector(3), "direction": _vector(3), "color": _vector(
               "outer_angle_degrees": _number(0.0, 90.0)}
 
 SCHEMA: dict[str, Any] = {
-    "name": _string,
+    "name": _file_stem,
     "description": _string,
     "frames": _integer(1),
     "repeats": _integer(1),
@@ -177,9 +182,11 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
         raise ConfigError(f"{source}: scene: give exactly one of scene.name (one of {sorted(SCENES)}) or scene.file")
     if "file" in scene:
         scene["file"] = str(pathlib.Path(base_dir) / scene["file"])
+        if not pathlib.Path(scene["file"]).is_file():
+            raise ConfigError(f"{source}: scene.file: no such file: {scene['file']}")
     camera = config.get("camera", {})
     if camera.get("near", 0.0) >= camera.get("far", math.inf):
-        raise ConfigError(f"{source}: camera: near ({camera['near']}) must be less than far ({camera['far']})")
+        raise ConfigError(f"{source}: camera.near ({camera['near']}) must be less than camera.far ({camera['far']})")
     if "path" in camera and config.get("frames", 1) < 2:
         raise ConfigError(f"{source}: camera.path needs frames >= 2, got frames = {config.get('frames', 1)}")
     passes = config.get("pipeline", {}).get("passes", DEFAULT_PASSES)
@@ -199,7 +206,7 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
     return config
 
 
-def _explicit_lights(section: dict):
+def _explicit_lights(section: dict, source: str):
     groups = []
     kinds = {"point": lights_module.POINT, "spot": lights_module.SPOT, "directional": lights_module.DIRECTIONAL}
     for kind, code in kinds.items():
@@ -207,15 +214,18 @@ def _explicit_lights(section: dict):
         if not entries:
             continue
         color = [np.asarray(e.get("color", [1.0, 1.0, 1.0])) * e.get("intensity", 1.0) for e in entries]
-        groups.append(lights_module.make_lights(
-            [code] * len(entries),
-            position=[e.get("position", [0.0, 0.0, 0.0]) for e in entries],
-            direction=[e.get("direction", [0.0, -1.0, 0.0]) for e in entries],
-            color=color,
-            range=[e.get("range", 10.0) for e in entries],
-            inner_angle_degrees=[e.get("inner_angle_degrees", 30.0) for e in entries],
-            outer_angle_degrees=[e.get("outer_angle_degrees", 45.0) for e in entries],
-        ))
+        try:
+            groups.append(lights_module.make_lights(
+                [code] * len(entries),
+                position=[e.get("position", [0.0, 0.0, 0.0]) for e in entries],
+                direction=[e.get("direction", [0.0, -1.0, 0.0]) for e in entries],
+                color=color,
+                range=[e.get("range", 10.0) for e in entries],
+                inner_angle_degrees=[e.get("inner_angle_degrees", 30.0) for e in entries],
+                outer_angle_degrees=[e.get("outer_angle_degrees", 45.0) for e in entries],
+            ))
+        except ValueError as error:
+            raise ConfigError(f"{source}: lights.{kind}: {error}") from None
     return groups
 
 
@@ -224,7 +234,7 @@ def build_lights(config: dict, scene: Scene):
     section = config.get("lights", {})
     generator = section.get("generator", "scene")
     groups = [scene.lights] if generator == "scene" or section.get("keep_scene_lights", False) else []
-    groups += _explicit_lights(section)
+    groups += _explicit_lights(section, config["_source"])
     if generator in ("uniform_in_box", "along_path"):
         source = config["_source"]
         for key in ("count", "range"):

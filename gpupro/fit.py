@@ -73,6 +73,7 @@ def get_value(path: str, params, scene) -> jax.Array:
 
 def set_value(path: str, value: jax.Array, params, scene):
     """Returns ``(params, scene)`` with the array at ``path`` replaced by ``value`` (no mutation)."""
+    get_value(path, params, scene)  # raises ValueError naming a path that does not exist
     root, keys = _split(path)
 
     def replace(node, keys):
@@ -244,7 +245,19 @@ def _parameters_from(config: dict) -> tuple[list[FitParameter], list]:
         if unknown or "path" not in entry:
             raise ConfigError(f"{source}: fit.parameters[{i}]: needs 'path'; allowed keys: path, indices, lower, upper, init"
                               + (f"; unknown {sorted(unknown)}" if unknown else ""))
+        where = f"{source}: fit.parameters[{i}]"
+        if not isinstance(entry["path"], str):
+            raise ConfigError(f"{where}.path: expected a string, got {entry['path']!r}")
         indices = entry.get("indices")
+        if indices is not None and not (isinstance(indices, list) and indices
+                                        and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in indices)):
+            raise ConfigError(f"{where}.indices: expected a non-empty list of non-negative integers, got {indices!r}")
+        for bound in ("lower", "upper"):
+            value = entry.get(bound, 0.0)
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                raise ConfigError(f"{where}.{bound}: expected a number, got {value!r}")
+        if "init" in entry and not np.issubdtype(np.asarray(entry["init"]).dtype, np.number):
+            raise ConfigError(f"{where}.init: expected a number or a (nested) list of numbers, got {entry['init']!r}")
         parameters.append(FitParameter(entry["path"], tuple(indices) if indices is not None else None,
                                        entry.get("lower", -math.inf), entry.get("upper", math.inf)))
         inits.append(entry.get("init"))
@@ -271,8 +284,17 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     optimizer_name = section.get("optimizer", "adam")
     if optimizer_name not in OPTIMIZERS:
         raise ConfigError(f"{source}: fit.optimizer: expected one of {list(OPTIMIZERS)}, got {optimizer_name!r}")
+    if section.get("loss", "l2") not in LOSSES:
+        raise ConfigError(f"{source}: fit.loss: expected one of {list(LOSSES)}, got {section['loss']!r}")
+    steps, rate = section.get("steps", 100), section.get("learning_rate", 0.05)
+    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
+        raise ConfigError(f"{source}: fit.steps: expected an integer >= 1, got {steps!r}")
+    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not rate > 0:
+        raise ConfigError(f"{source}: fit.learning_rate: expected a number > 0, got {rate!r}")
     scene = build_scene(config)
     pipeline, params = build_pipeline(config)
+    if buffer not in pipeline.buffers:
+        raise ConfigError(f"{source}: fit.buffer: no pass produces {buffer!r} (buffers: {', '.join(pipeline.buffers)})")
     parameters, inits = _parameters_from(config)
     try:
         truth = _gather(parameters, params, scene)
@@ -292,8 +314,7 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
 
     begin = time.perf_counter()
     result = fit(pipeline, params, scene, target, parameters, buffer=buffer, loss=section.get("loss", "l2"),
-                 optimizer=getattr(optax, optimizer_name)(section.get("learning_rate", 0.05)),
-                 steps=section.get("steps", 100), progress=progress)
+                 optimizer=getattr(optax, optimizer_name)(rate), steps=steps, progress=progress)
     seconds = time.perf_counter() - begin
 
     out = pathlib.Path(out_dir)

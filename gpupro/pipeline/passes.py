@@ -32,7 +32,7 @@ def _raster(params, inputs, scene, *, cull_backfaces, tile, tile_capacity):
     return {name: getattr(fragments, name) for name in FRAGMENT_BUFFERS}, fragments.counters
 
 
-def raster_pass(*, name: str = "raster", cull_backfaces: bool = False, tile: int = 8, tile_capacity: int = 32) -> Pass:
+def raster_pass(*, name: str = "raster", cull_backfaces: bool = False, tile: int = 16, tile_capacity: int = 32) -> Pass:
     """Tiled rasterization of the scene from its camera → triangle_id, depth, barycentrics and derivatives."""
     return Pass(name, _raster, (), FRAGMENT_BUFFERS,
                 options=dict(cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity))

@@ -1,0 +1,153 @@
+"""The ``gpupro`` command: ``list``, ``run`` (EXR, PNG preview, report.json, camera paths) and its errors."""
+
+import contextlib
+import importlib
+import io
+import json
+import pathlib
+import shutil
+import tomllib
+
+import numpy as np
+import pytest
+
+from gpupro.catalogue import TECHNIQUES
+from gpupro.cli import main
+from gpupro.io import read_exr, read_png
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+SMALL = ["--set", "camera.resolution=[32,32]", "--set", "lights.count=16"]
+
+
+def test_console_script_is_declared_and_resolves_to_main():
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    module, _, function = scripts["gpupro"].partition(":")
+    assert getattr(importlib.import_module(module), function) is main
+
+
+def test_list_prints_the_catalogue(capsys):
+    assert main(["list"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:3] == ["id", "family", "status"]
+    listed = {line.split()[0] for line in lines[1:]}
+    assert listed == set(TECHNIQUES) and len(lines) == 1 + len(TECHNIQUES)
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """``gpupro run`` on a copy of configs/default.toml, made small with --set."""
+    folder = tmp_path_factory.mktemp("default")
+    config = folder / "default.toml"
+    shutil.copy(ROOT / "configs" / "default.toml", config)
+    out = folder / "out"
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = main(["run", str(config), "--out", str(out), *SMALL])
+    return code, out, stdout.getvalue(), stderr.getvalue()
+
+
+def test_run_succeeds_and_summarises(default_run):
+    code, out, stdout, stderr = default_run
+    assert code == 0, stderr
+    assert "default: 4162 triangles, 16 lights, 32x32" in stdout
+    assert stderr.splitlines()[-1].startswith("frame 1/1: ")
+    assert sorted(p.name for p in out.iterdir()) == ["default.exr", "default.png", "report.json"]
+
+
+def test_run_writes_every_requested_buffer_to_exr(default_run):
+    images = read_exr(default_run[1] / "default.exr")
+    assert {k: v.shape for k, v in images.items()} == {
+        "hdr": (32, 32, 3), "ldr": (32, 32, 3), "normal": (32, 32, 3), "base_color": (32, 32, 3), "depth": (32, 32, 1)}
+    assert np.all(images["hdr"] >= 0) and images["hdr"].max() > 0
+    assert 0 <= images["ldr"].min() and images["ldr"].max() <= 1
+    covered = np.linalg.norm(images["normal"], axis=-1) > 0.5
+    np.testing.assert_allclose(np.linalg.norm(images["normal"][covered], axis=-1), 1.0, atol=1e-4)
+    assert np.all((images["depth"][covered] > 0) & (images["depth"][covered] < 1))
+
+
+def test_run_writes_the_ldr_preview(default_run):
+    png = read_png(default_run[1] / "default.png")
+    ldr = read_exr(default_run[1] / "default.exr")["ldr"]
+    assert png.shape == (32, 32, 3) and png.dtype == np.uint8
+    assert np.abs(png / 255.0 - ldr).max() <= 1 / 255  # the preview is the ldr buffer, quantised
+
+
+def test_run_report(default_run):
+    out = default_run[1]
+    report = json.loads((out / "report.json").read_text())
+    assert {"config", "device", "compile_s", "frame_ms", "counters", "outputs"} <= set(report)
+    assert report["config"]["camera"]["resolution"] == [32, 32] and report["config"]["lights"]["count"] == 16
+    assert report["config"]["name"] == "default"
+    assert report["device"]["device_kind"] and report["device"]["backend"] == "cpu"
+    assert report["compile_s"] > 0
+    ms = report["frame_ms"]
+    assert 0 < ms["min"] <= ms["median"] <= ms["max"]
+    assert report["outputs"] == ["default.exr", "default.png"]
+    counters = report["counters"]
+    assert set(counters) == {"raster", "gbuffer", "deferred", "post"}
+    assert counters["raster"]["triangles"] == report["triangles"] == 4162
+    assert counters["deferred"]["lights"] == report["lights"] == 16
+    covered = np.count_nonzero(np.linalg.norm(read_exr(out / "default.exr")["normal"], axis=-1) > 0.5)
+    assert counters["deferred"]["lighting_computations"] == 16 * covered
+
+
+@pytest.mark.parametrize("text, overrides, message", [
+    ('[scene]\nname = "cornell_box"\n[camera]\nfov = 40.0\n', [], "unknown key 'camera.fov'"),
+    ('[scene]\nname = "cornell_box"\n[camera\n', [], "not valid TOML"),
+    ('[scene]\nname = "cornell_box"\n', ["lights.count=-1"], "lights.count: expected an integer >= 0, got -1"),
+    ('[scene]\nname = "cornell_box"\n[pipeline.params.deferred]\nambient = [1.0]\n', [],
+     "pipeline.params.deferred.ambient: expected shape [3], got [1]"),
+    ('[scene]\nfile = "gone.obj"\n', [], "scene.file: no such file"),
+], ids=["unknown key", "invalid TOML", "bad override", "param shape", "missing scene file"])
+def test_bad_config_exits_2_with_one_line(tmp_path, capsys, text, overrides, message):
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    args = ["run", str(config), "--out", str(tmp_path / "out")]
+    for override in overrides:
+        args += ["--set", override]
+    assert main(args) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    lines = captured.err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"gpupro run: error: {config}: ")
+    assert message in lines[0] and "Traceback" not in captured.err
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_config_exits_2(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "nothing.toml")]) == 2
+    assert capsys.readouterr().err == f"gpupro run: error: config file not found: {tmp_path / 'nothing.toml'}\n"
+
+
+CAMERA_PATH = """name = "orbit"
+frames = 3
+
+[scene]
+name = "cornell_box"
+
+[camera]
+resolution = [32, 32]
+
+[camera.path]
+eye_end = [0.5, 2.73, -6.0]
+
+[outputs]
+buffers = ["hdr", "ldr"]
+"""
+
+
+def test_camera_path_writes_one_exr_per_frame(tmp_path, capsys):
+    config = tmp_path / "orbit.toml"
+    config.write_text(CAMERA_PATH)
+    out = tmp_path / "out"
+    assert main(["run", str(config), "--out", str(out)]) == 0
+    progress = [line for line in capsys.readouterr().err.splitlines() if line.startswith("frame ")]
+    assert [line.split(":")[0] for line in progress] == ["frame 1/3", "frame 2/3", "frame 3/3"]
+    assert all(line.endswith(" ms") for line in progress)
+    expected = [f"orbit_{i:04d}.{ext}" for i in range(3) for ext in ("exr", "png")]
+    assert sorted(p.name for p in out.iterdir()) == sorted(expected + ["report.json"])
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == 3 and report["outputs"] == expected
+    frames = [read_exr(out / f"orbit_{i:04d}.exr")["hdr"] for i in range(3)]
+    assert all(f.shape == (32, 32, 3) for f in frames)
+    assert np.abs(frames[0] - frames[1]).mean() > 1e-3 and np.abs(frames[1] - frames[2]).mean() > 1e-3

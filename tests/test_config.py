@@ -1,0 +1,294 @@
+"""Experiment configs: checked key by key with errors naming the file and the dotted key, ``--set``
+overrides, configs read as data, and the scenes, lights, cameras and pipelines built from them."""
+
+import math
+import pathlib
+import re
+
+import numpy as np
+import pytest
+
+from gpupro.config import (ConfigError, build_pipeline, build_scene, camera_path, check_config, load_config,
+                           parse_override)
+from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT
+
+CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs"
+CORNELL = '[scene]\nname = "cornell_box"\n'
+
+
+def write(tmp_path, text, name="exp.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def build(path, overrides=()):
+    config = load_config(path, overrides)
+    return config, build_scene(config), build_pipeline(config)
+
+
+# (config text, the error's message after "exp.toml: ") for configs that load_config itself refuses.
+LOAD_ERRORS = {
+    "unknown top-level key": ("colour = 1\n" + CORNELL, r"unknown key 'colour'"),
+    "unknown nested key": (CORNELL + "[camera]\nfov = 40.0\n", r"unknown key 'camera\.fov'"),
+    "unknown key in camera.path": ("frames = 2\n" + CORNELL + "[camera.path]\neye_start = [0, 0, 0]\n",
+                                   r"unknown key 'camera\.path\.eye_start'"),
+    "zero resolution": (CORNELL + "[camera]\nresolution = [0, 64]\n", r"camera\.resolution: expected .*got \[0, 64\]"),
+    "resolution of 3": (CORNELL + "[camera]\nresolution = [32, 32, 3]\n", r"camera\.resolution: expected"),
+    "string for a number": (CORNELL + '[camera]\nnear = "0.1"\n', r"camera\.near: expected a finite number .*got '0\.1'"),
+    "boolean for a number": (CORNELL + "[camera]\nfov_y_degrees = true\n", r"camera\.fov_y_degrees: expected .*got True"),
+    "boolean for an integer": (CORNELL + "[lights]\ncount = true\n", r"lights\.count: expected an integer"),
+    "boolean in a vector": (CORNELL + "[camera]\neye = [0.0, 1.0, true]\n", r"camera\.eye: expected a list of 3"),
+    "table expected": ("camera = 3\n" + CORNELL, r"camera: expected a table"),
+    "unknown scene name": ('[scene]\nname = "sponza"\n', r"scene\.name: expected one of .*'cornell_box'.*got 'sponza'"),
+    "both scene.name and scene.file": ('[scene]\nname = "cornell_box"\nfile = "box.obj"\n',
+                                       r"scene: give exactly one of scene\.name .* or scene\.file"),
+    "neither scene.name nor scene.file": ('name = "x"\n', r"scene: give exactly one of scene\.name"),
+    "missing scene file": ('[scene]\nfile = "missing.obj"\n', r"scene\.file: no such file: .*missing\.obj"),
+    "invalid TOML": (CORNELL + "[camera\nnear = 1\n", r"not valid TOML"),
+    "near >= far": (CORNELL + "[camera]\nnear = 5.0\nfar = 5.0\n", r"camera\.near \(5\.0\) must be less than camera\.far"),
+    "unknown pass": (CORNELL + '[pipeline]\npasses = ["raster", "gbuffer", "clustered", "post"]\n',
+                     r"pipeline\.passes: unknown pass 'clustered'"),
+    "options for a pass not in the pipeline": (CORNELL + "[pipeline.options.shadow_maps]\ncount = 1\n",
+                                               r"pipeline\.options\.shadow_maps: no such pass"),
+    "params for a pass not in the pipeline": (CORNELL + "[pipeline.params.forward]\nambient = [0.0, 0.0, 0.0]\n",
+                                              r"pipeline\.params\.forward: no such pass"),
+    "unknown light generator": (CORNELL + '[lights]\ngenerator = "random"\n', r"lights\.generator: expected one of"),
+    "camera path with one frame": ("frames = 1\n" + CORNELL + "[camera.path]\neye_end = [2.0, 3.0, -6.0]\n",
+                                   r"camera\.path needs frames >= 2"),
+    "explicit light with a bad key": (CORNELL + "[[lights.point]]\nposition = [1.0, 2.0, 3.0]\ncolour = [1.0, 1.0, 1.0]\n",
+                                      r"unknown key 'lights\.point\[0\]\.colour'"),
+    "explicit light with a bad value": (CORNELL + "[[lights.spot]]\nintensity = -1.0\n",
+                                        r"lights\.spot\[0\]\.intensity: expected"),
+    "name that is a path": ('name = "../escaped"\n' + CORNELL, r"name: expected a non-empty file name"),
+}
+
+# Configs that load (every key is known and well typed) but cannot be built into a scene or pipeline.
+BUILD_ERRORS = {
+    "unknown pass param": (CORNELL + "[pipeline.params.deferred]\nshininess = 1.0\n",
+                           r"pipeline\.params\.deferred\.shininess: unknown parameter"),
+    "param of the wrong shape": (CORNELL + "[pipeline.params.deferred]\nambient = [0.1, 0.1]\n",
+                                 r"pipeline\.params\.deferred\.ambient: expected shape \[3\], got \[2\]"),
+    "bad pass option": (CORNELL + '[pipeline.options.deferred]\ndistribution = "phong"\n',
+                        r"pipeline\.options\.deferred: .*'phong'"),
+    "unknown pass option": (CORNELL + "[pipeline.options.deferred]\nchunk = 8\n", r"pipeline\.options\.deferred: "),
+    "uniform_in_box without count": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\nrange = 2.0\n',
+                                     r"lights\.count is required by generator 'uniform_in_box'"),
+    "along_path without path": (CORNELL + '[lights]\ngenerator = "along_path"\ncount = 4\nrange = 2.0\n',
+                                r"lights\.path is required"),
+    "empty light box": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\ncount = 4\nrange = 2.0\n'
+                        "box_lo = [1.0, 1.0, 1.0]\nbox_hi = [0.0, 2.0, 2.0]\n", r"lights\.box_lo must not exceed"),
+    "spot cone inside out": (CORNELL + "[[lights.spot]]\ninner_angle_degrees = 50.0\nouter_angle_degrees = 40.0\n",
+                             r"lights\.spot: .*spot cones"),
+    "unknown scene option": ('[scene]\nname = "cornell_box"\noptions = { size = 2.0 }\n', r"scene\.options: .*size"),
+    "outputs no pass produces": (CORNELL + '[outputs]\nbuffers = ["hdr", "bloom"]\n', r"pipeline: .*bloom"),
+}
+
+
+@pytest.mark.parametrize("text, message", LOAD_ERRORS.values(), ids=LOAD_ERRORS.keys())
+def test_bad_config_is_refused_naming_file_and_key(tmp_path, text, message):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError, match=re.escape(str(path)) + ": " + message) as error:
+        load_config(path)
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("text, message", BUILD_ERRORS.values(), ids=BUILD_ERRORS.keys())
+def test_unbuildable_config_is_refused_naming_file_and_key(tmp_path, text, message):
+    path = write(tmp_path, text)
+    config = load_config(path)
+    with pytest.raises(ConfigError, match=re.escape(str(path)) + ": " + message):
+        build_scene(config)
+        build_pipeline(config)
+
+
+def test_missing_config_file_is_named(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found: .*nothing.toml"):
+        load_config(tmp_path / "nothing.toml")
+
+
+@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.toml")), ids=lambda p: p.name)
+def test_shipped_configs_load_and_build(path):
+    config, scene, (pipeline, params) = build(path)
+    assert config["name"] == path.stem
+    assert scene.lights.count > 0
+    assert "hdr" in pipeline.outputs
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("camera.resolution=[32,32]", (["camera", "resolution"], [32, 32])),
+    ("lights.count=64", (["lights", "count"], 64)),
+    ("lights.intensity=2.5", (["lights", "intensity"], 2.5)),
+    ("lights.white=true", (["lights", "white"], True)),
+    ('name="quoted"', (["name"], "quoted")),
+    ("name=my run", (["name"], "my run")),
+    ("description=a = b", (["description"], "a = b")),
+    ("pipeline.passes=['raster', 'gbuffer', 'forward', 'post']", (["pipeline", "passes"], ["raster", "gbuffer", "forward", "post"])),
+])
+def test_parse_override_reads_toml_values_and_falls_back_to_strings(text, expected):
+    assert parse_override(text) == expected
+
+
+@pytest.mark.parametrize("text", ["lights.count", "=3", "camera..near=1", "camera.=1"])
+def test_malformed_override_is_refused(text):
+    with pytest.raises(ConfigError, match=re.escape(repr(text))):
+        parse_override(text)
+
+
+def test_overrides_apply_through_load_config(tmp_path):
+    path = write(tmp_path, CORNELL + "[camera]\nresolution = [64, 64]\n")
+    config = load_config(path, ["camera.resolution=[16,24]", "lights.generator=none", "frames=3",
+                                "camera.path.eye_end=[1.0, 2.0, -5.0]", "name=tiny run"])
+    assert config["camera"]["resolution"] == [16, 24]
+    assert config["lights"] == {"generator": "none"}
+    assert config["frames"] == 3 and config["camera"]["path"] == {"eye_end": [1.0, 2.0, -5.0]}
+    assert config["name"] == "tiny run"
+    assert load_config(path)["camera"]["resolution"] == [64, 64]
+
+
+@pytest.mark.parametrize("override, message", [
+    ("camera.resolution=[0,1]", r"camera\.resolution: expected"),
+    ("lights.count=many", r"lights\.count: expected an integer >= 0, got 'many'"),
+    ("camera.resolution.height=1", r"'resolution' is not a table"),
+    ("camera.fov=30", r"unknown key 'camera\.fov'"),
+])
+def test_overrides_are_checked(tmp_path, override, message):
+    path = write(tmp_path, CORNELL + "[camera]\nresolution = [64, 64]\n")
+    with pytest.raises(ConfigError, match=message):
+        load_config(path, [override])
+
+
+def test_check_config_does_not_mutate_its_input():
+    config = {"scene": {"name": "cornell_box"}, "camera": {"resolution": [8, 8]}}
+    checked = check_config(config, overrides=["camera.resolution=[4,4]", "lights.count=2"])
+    assert config == {"scene": {"name": "cornell_box"}, "camera": {"resolution": [8, 8]}}
+    assert checked["camera"]["resolution"] == [4, 4] and checked["lights"]["count"] == 2
+
+
+def test_config_strings_are_data_never_code(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    marker = tmp_path / "pwned_gpupro"
+    code = f"__import__('os').system('touch {marker}')"
+    name = "__import__('os').system('touch pwned_name')"
+    path = write(tmp_path, f'name = "{name}"\ndescription = "{code}"\n' + CORNELL)
+    config, scene, _ = build(path, [f"outputs.preview={code}"])
+    assert config["name"] == name and config["description"] == code and config["outputs"]["preview"] == code
+    assert len(camera_path(config, scene)) == 1
+    with pytest.raises(ConfigError, match=re.escape("lights.generator: expected one of")):
+        load_config(path, ["lights.generator=eval('none')"])
+    assert not marker.exists() and not (tmp_path / "pwned_name").exists()
+
+
+EXPLICIT_LIGHTS = CORNELL + """
+[lights]
+generator = "none"
+
+[[lights.point]]
+position = [1.0, 2.0, 3.0]
+color = [1.0, 0.5, 0.25]
+intensity = 4.0
+range = 6.0
+
+[[lights.point]]
+position = [2.0, 2.0, 2.0]
+
+[[lights.spot]]
+position = [2.78, 5.0, 2.8]
+direction = [0.0, -2.0, 0.0]
+color = [0.0, 1.0, 0.0]
+intensity = 10.0
+inner_angle_degrees = 20.0
+outer_angle_degrees = 35.0
+
+[[lights.directional]]
+direction = [0.0, -1.0, 1.0]
+intensity = 0.5
+"""
+
+
+def test_explicit_lights_are_built_as_written(tmp_path):
+    _, scene, _ = build(write(tmp_path, EXPLICIT_LIGHTS))
+    lights = scene.lights
+    assert lights.count == 4
+    np.testing.assert_array_equal(lights.kind, [POINT, POINT, SPOT, DIRECTIONAL])
+    np.testing.assert_allclose(lights.color, [[4.0, 2.0, 1.0], [1.0, 1.0, 1.0], [0.0, 10.0, 0.0], [0.5, 0.5, 0.5]])
+    np.testing.assert_allclose(lights.position[:3], [[1.0, 2.0, 3.0], [2.0, 2.0, 2.0], [2.78, 5.0, 2.8]], rtol=1e-6)
+    np.testing.assert_allclose(lights.direction[2], [0.0, -1.0, 0.0])
+    np.testing.assert_allclose(lights.direction[3], [0.0, -math.sqrt(0.5), math.sqrt(0.5)], rtol=1e-6)
+    np.testing.assert_allclose(lights.range[:3], [6.0, 10.0, 10.0])
+    assert np.isinf(lights.range[3])
+    np.testing.assert_allclose([lights.cos_inner[2], lights.cos_outer[2]],
+                               np.cos(np.radians([20.0, 35.0])), rtol=1e-6)
+
+
+def test_explicit_lights_add_to_the_scene_lights(tmp_path):
+    own = build(write(tmp_path, CORNELL))[1].lights
+    path = write(tmp_path, EXPLICIT_LIGHTS.replace('generator = "none"', 'generator = "scene"'), "both.toml")
+    lights = build(path)[1].lights
+    assert own.count == 2 and lights.count == own.count + 4
+    np.testing.assert_array_equal(lights.color[:2], own.color)
+
+
+def test_uniform_in_box_adds_count_lights_inside_the_scene_bounds(tmp_path):
+    text = CORNELL + '[lights]\ngenerator = "uniform_in_box"\ncount = 16\nrange = 2.0\nintensity = 3.0\nseed = 1\n'
+    _, scene, _ = build(write(tmp_path, text))
+    lights = scene.lights
+    lo, hi = scene.bounds()
+    assert lights.count == 16
+    position = np.asarray(lights.position)
+    assert np.all(position >= lo - 1e-5) and np.all(position <= hi + 1e-5)
+    assert np.ptp(position, axis=0).min() > 0.25 * (hi - lo).min()  # spread out, not piled up
+    np.testing.assert_array_equal(lights.kind, np.full(16, POINT))
+    np.testing.assert_allclose(np.max(lights.color, axis=1), 3.0, rtol=1e-6)
+    np.testing.assert_allclose(lights.range, 2.0)
+
+    same = build(write(tmp_path, text, "same.toml"))[1].lights
+    other = build(write(tmp_path, text.replace("seed = 1", "seed = 2"), "other.toml"))[1].lights
+    np.testing.assert_array_equal(same.position, lights.position)
+    assert not np.allclose(other.position, lights.position)
+
+
+def test_uniform_in_box_respects_the_box_and_keeps_scene_lights_when_asked(tmp_path):
+    text = CORNELL + ('[lights]\ngenerator = "uniform_in_box"\ncount = 8\nrange = 2.0\nkeep_scene_lights = true\n'
+                      "box_lo = [1.0, 1.0, 1.0]\nbox_hi = [2.0, 1.5, 3.0]\n")
+    lights = build(write(tmp_path, text))[1].lights
+    assert lights.count == 2 + 8
+    generated = np.asarray(lights.position[2:])
+    assert np.all(generated >= [1.0, 1.0, 1.0]) and np.all(generated <= [2.0, 1.5, 3.0])
+
+
+def test_camera_settings_and_resolution_reach_the_scene(tmp_path):
+    text = CORNELL + "[camera]\nresolution = [24, 40]\neye = [1.0, 2.0, -6.0]\nfov_y_degrees = 50.0\nfar = 30.0\n"
+    camera = build(write(tmp_path, text))[1].camera
+    assert camera.resolution == (24, 40)
+    np.testing.assert_allclose(camera.eye, [1.0, 2.0, -6.0])
+    np.testing.assert_allclose(camera.target, [2.78, 2.73, 0.0], rtol=1e-6)  # the Cornell box's own
+    np.testing.assert_allclose([camera.fov_y, camera.far], [math.radians(50.0), 30.0], rtol=1e-6)
+
+
+def test_camera_path_interpolates_eye_and_target_linearly(tmp_path):
+    text = "frames = 5\n" + CORNELL + "[camera]\nresolution = [16, 16]\n[camera.path]\neye_end = [0.0, 1.0, -4.0]\ntarget_end = [2.0, 2.0, 4.0]\n"
+    config, scene, _ = build(write(tmp_path, text))
+    cameras = camera_path(config, scene)
+    assert len(cameras) == 5
+    eye0, target0 = np.asarray(scene.camera.eye), np.asarray(scene.camera.target)
+    for i, camera in enumerate(cameras):
+        t = i / 4
+        np.testing.assert_allclose(camera.eye, (1 - t) * eye0 + t * np.array([0.0, 1.0, -4.0]), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(camera.target, (1 - t) * target0 + t * np.array([2.0, 2.0, 4.0]), rtol=1e-6, atol=1e-6)
+        assert camera.resolution == (16, 16) and camera.fov_y == scene.camera.fov_y
+        np.testing.assert_array_equal(camera.up, scene.camera.up)
+
+
+def test_pipeline_options_and_params_reach_the_pipeline(tmp_path):
+    text = CORNELL + ('[pipeline]\npasses = ["raster", "gbuffer", "forward", "post"]\n'
+                      '[pipeline.options.forward]\nlight_chunk = 8\ndistribution = "beckmann"\n'
+                      "[pipeline.params.forward]\nambient = [0.1, 0.2, 0.3]\n[pipeline.params.post]\nexposure = 1.5\n"
+                      '[outputs]\nbuffers = ["hdr", "normal"]\n')
+    _, _, (pipeline, params) = build(write(tmp_path, text))
+    assert [p.name for p in pipeline.passes] == ["raster", "gbuffer", "forward", "post"]
+    assert dict(pipeline["forward"].options) == {"distribution": "beckmann", "light_chunk": 8, "shadows": False}
+    assert pipeline.outputs == ("hdr", "normal")
+    np.testing.assert_allclose(params["forward"]["ambient"], [0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(params["forward"]["background"], [0.0, 0.0, 0.0])
+    assert float(params["post"]["exposure"]) == 1.5
