@@ -22,19 +22,20 @@ import jax
 import gpupro as gp
 from gpupro.bench import device_info, peak_memory_bytes, time_function
 from gpupro.scene.light_generators import uniform_in_box
-from gpupro.shading.deferred import shade_deferred
+from gpupro.shading.deferred import default_light_chunk, shade_deferred
 
 
 def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--lights", default="1,64,1024,16384", help="comma-separated light counts")
     parser.add_argument("--resolution", default="1920x1080", help="WIDTHxHEIGHT")
-    parser.add_argument("--light-chunk", type=int, default=64, help="lights per scan step")
+    parser.add_argument("--light-chunk", type=int, default=None, help="lights per scan step (default: the backend's)")
     parser.add_argument("--range", type=float, default=4.0, help="light range (world units)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--json", help="write the results to this file")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.resolution.lower().split("x"))
+    args.light_chunk = args.light_chunk or default_light_chunk()
 
     scene = gp.scenes.atrium(resolution=(height, width))
     gbuffer, _ = jax.jit(gp.render_gbuffer)(scene)

@@ -40,7 +40,7 @@ def main(argv=None) -> int:
             ms = report["frame_ms"]
             print(f"{report['name']}: {report['triangles']} triangles, {report['lights']} lights, "
                   f"{report['resolution'][0]}x{report['resolution'][1]} on {report['device']['device_kind']}: "
-                  f"compile {report['compile_s']:.2f} s, frame {ms['median']:.1f} ms (median of {report['frames']})")
+                  f"compile {report['compile_s']:.2f} s, frame {ms['median']:.1f} ms (median of {report['timed_runs']} runs)")
             print(f"wrote {', '.join(report['outputs'])} and report.json in {args.out}")
         else:
             from gpupro.fit import fit_experiment

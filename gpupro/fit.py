@@ -206,7 +206,7 @@ def check_grads(pipeline: Pipeline, params, scene, *, paths: list[str] | None = 
             p, s = set_value(path, v, params, scene)
             return jnp.sum(weights * frame(p, s)[output])
 
-        analytic = float(jnp.vdot(jax.grad(loss)(value), direction))
+        analytic = float(jnp.vdot(jax.grad(loss)(value), direction, precision=jax.lax.Precision.HIGHEST))
         numeric = float((loss(value + eps * direction) - loss(value - eps * direction)) / (2 * eps))
         results[path] = (analytic, numeric)
         scale = max(abs(analytic), abs(numeric), 1e-3)

@@ -93,6 +93,7 @@ def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         "resolution": list(scene.camera.resolution),
         "compile_s": compile_s,
         "frames": frames,
+        "timed_runs": len(times_ms),
         "frame_ms": {"median": float(np.median(times_ms)), "min": float(np.min(times_ms)), "max": float(np.max(times_ms))},
         "counters": _plain(buffers["counters"]),
         "pipeline": pipeline.describe(),

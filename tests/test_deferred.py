@@ -260,7 +260,7 @@ def test_jit_matches_eager_and_counts_work():
     options = dict(ambient=(0.1, 0.1, 0.1), light_chunk=4)
     eager, eager_counters = shade_deferred(g, lights, EYE, **options)
     jitted, jit_counters = shade(g, lights, **options)
-    np.testing.assert_allclose(jitted, eager, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(jitted, eager, rtol=1e-5, atol=1e-7)  # fusion changes float32 rounding
     covered = int(np.sum(np.asarray(g["coverage"]) > 0))
     for counters in (eager_counters, jit_counters):
         assert counters["lighting_computations"].dtype == jnp.float32
@@ -270,7 +270,7 @@ def test_jit_matches_eager_and_counts_work():
     options = dict(options, distribution="beckmann")
     eager, _ = shade_forward(triangle_id, barycentrics, mesh, materials, lights, EYE, **options)
     jitted, counters = shade_forward_jit(triangle_id, barycentrics, mesh, materials, lights, EYE, **options)
-    np.testing.assert_allclose(jitted, eager, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(jitted, eager, rtol=1e-5, atol=1e-7)  # fusion changes float32 rounding
     assert int(counters["lighting_computations"]) == int(np.sum(triangle_id >= 0)) * 11
 
 

@@ -32,7 +32,7 @@ def _raster(params, inputs, scene, *, cull_backfaces, tile, tile_capacity):
     return {name: getattr(fragments, name) for name in FRAGMENT_BUFFERS}, fragments.counters
 
 
-def raster_pass(*, name: str = "raster", cull_backfaces: bool = False, tile: int = 16, tile_capacity: int = 32) -> Pass:
+def raster_pass(*, name: str = "raster", cull_backfaces: bool = False, tile: int = 8, tile_capacity: int = 32) -> Pass:
     """Tiled rasterization of the scene from its camera → triangle_id, depth, barycentrics and derivatives."""
     return Pass(name, _raster, (), FRAGMENT_BUFFERS,
                 options=dict(cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity))
@@ -90,7 +90,7 @@ def _deferred(params, inputs, scene, *, distribution, light_chunk, shadows):
     return {"hdr": hdr}, counters
 
 
-def deferred_pass(*, name: str = "shading", distribution: str = "ggx", light_chunk: int = 1024, shadows: bool = False,
+def deferred_pass(*, name: str = "shading", distribution: str = "ggx", light_chunk: int | None = None, shadows: bool = False,
                   ambient=(0.0, 0.0, 0.0), background=(0.0, 0.0, 0.0)) -> Pass:
     """Deferred shading with a brute-force light loop (every light at every pixel) → ``hdr``.
 
@@ -112,7 +112,7 @@ def _forward(params, inputs, scene, *, distribution, light_chunk, shadows):
     return {"hdr": hdr}, counters
 
 
-def forward_pass(*, name: str = "shading", distribution: str = "ggx", light_chunk: int = 1024, shadows: bool = False,
+def forward_pass(*, name: str = "shading", distribution: str = "ggx", light_chunk: int | None = None, shadows: bool = False,
                  ambient=(0.0, 0.0, 0.0), background=(0.0, 0.0, 0.0)) -> Pass:
     """Forward shading straight from the rasterizer's fragments, without a stored G-buffer → ``hdr``."""
     _check_distribution(distribution)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from gpupro.numerics import einsum
 from gpupro.raster.rasterize import Fragments, rasterize
 from gpupro.raster.texture import sample_trilinear
 from gpupro.scene.camera import Camera, to_clip
@@ -48,7 +49,7 @@ def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     face = mesh.faces[jnp.where(covered, tri, 0)]  # [H, W, 3]
 
     def interpolate(attribute, weights):
-        return jnp.where(mask, jnp.einsum("hwi,hwic->hwc", weights, attribute[face]), 0.0)
+        return jnp.where(mask, einsum("hwi,hwic->hwc", weights, attribute[face]), 0.0)
 
     b, bx, by = fragments.barycentrics, fragments.bary_dx, fragments.bary_dy
     position = interpolate(mesh.positions, b)

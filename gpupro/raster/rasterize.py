@@ -99,7 +99,7 @@ def rasterize(
     *,
     resolution: tuple[int, int],
     cull_backfaces: bool = False,
-    tile: int = 16,
+    tile: int = 8,
     tile_capacity: int = 32,
     pair_capacity: int | None = None,
     chunk_batch: int | None = None,

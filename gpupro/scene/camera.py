@@ -27,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpupro.numerics import matmul
+
 PROJECTIONS = ("perspective", "orthographic")
 
 
@@ -68,7 +70,7 @@ class Camera:
 
     def view_projection(self) -> jax.Array:
         """World → clip transform, float32 [4, 4]."""
-        return self.projection_matrix() @ self.view_matrix()
+        return matmul(self.projection_matrix(), self.view_matrix())
 
 
 def make_camera(
@@ -131,7 +133,7 @@ def look_at(eye: jax.Array, target: jax.Array, up: jax.Array) -> jax.Array:
     right = right / jnp.linalg.norm(right)
     true_up = jnp.cross(right, forward)
     rotation = jnp.stack([right, true_up, -forward])
-    translation = -rotation @ eye
+    translation = -matmul(rotation, eye)
     top = jnp.concatenate([rotation, translation[:, None]], axis=1)
     return jnp.concatenate([top, jnp.array([[0.0, 0.0, 0.0, 1.0]], top.dtype)], axis=0)
 
@@ -167,7 +169,7 @@ def orthographic(height: jax.Array, aspect: float, near: jax.Array, far: jax.Arr
 def to_clip(positions: jax.Array, view_projection: jax.Array) -> jax.Array:
     """Transforms world positions [V, 3] to clip space [V, 4] with a [4, 4] matrix."""
     homogeneous = jnp.concatenate([positions, jnp.ones_like(positions[:, :1])], axis=1)
-    return homogeneous @ view_projection.T
+    return matmul(homogeneous, view_projection.T)
 
 
 def linear_depth_from_window(depth: jax.Array, near: jax.Array, far: jax.Array) -> jax.Array:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from gpupro.numerics import einsum
 from gpupro.scene.lights import Lights
 from gpupro.scene.materials import Materials
 from gpupro.scene.mesh import Mesh
@@ -40,7 +41,7 @@ def _normalize(v):
 
 
 def shade_forward(triangle_id, barycentrics, mesh: Mesh, materials: Materials, lights: Lights, eye, *,
-                  ambient=(0.0, 0.0, 0.0), distribution: str = "ggx", light_chunk: int = 1024, shadow=None,
+                  ambient=(0.0, 0.0, 0.0), distribution: str = "ggx", light_chunk: int | None = None, shadow=None,
                   background=(0.0, 0.0, 0.0)):
     """Forward shading of rasterized fragments by brute force over all lights.
 
@@ -67,7 +68,7 @@ def shade_forward(triangle_id, barycentrics, mesh: Mesh, materials: Materials, l
     face_index = jnp.where(covered, triangle_id, 0)
     corners = mesh.faces[face_index]  # [H, W, 3] vertex ids
     b = jnp.asarray(barycentrics, jnp.float32)
-    interpolate = lambda attribute: jnp.einsum("hwk,hwkc->hwc", b, attribute[corners])
+    interpolate = lambda attribute: einsum("hwk,hwkc->hwc", b, attribute[corners])
     position = interpolate(mesh.positions)
     p = mesh.positions[corners]
     face_normal = jnp.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :])

@@ -55,6 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpupro.numerics import einsum, matmul
 from gpupro.raster import rasterize
 from gpupro.scene.camera import Camera, look_at, perspective, to_clip
 from gpupro.scene.lights import POINT, SPOT, Lights
@@ -99,7 +100,7 @@ def _up_for(forward: jax.Array) -> jax.Array:
 
 def _transform_points(matrix: jax.Array, points: jax.Array) -> jax.Array:
     """Affine transform of points [N, 3] by a [4, 4] matrix whose last row is (0, 0, 0, 1)."""
-    return points @ matrix[:3, :3].T + matrix[:3, 3]
+    return matmul(points, matrix[:3, :3].T) + matrix[:3, 3]
 
 
 def _box_corners(lo: jax.Array, hi: jax.Array) -> jax.Array:
@@ -126,7 +127,7 @@ def frustum_corners(camera: Camera, *, max_distance: float | None = None) -> jax
         [jnp.stack([sx * h * camera.aspect, sy * h, jnp.full(4, -d)], axis=-1) for h, d in zip(half_height, distance)]
     )
     rotation = camera.view_matrix()[:3, :3]
-    return view @ rotation + camera.eye  # inverse of a rigid view transform: R^T v + eye
+    return matmul(view, rotation) + camera.eye  # inverse of a rigid view transform: R^T v + eye
 
 
 def _orthographic_box(left, right, bottom, top, near, far) -> jax.Array:
@@ -166,7 +167,7 @@ def directional_light_matrix(direction, camera: Camera, scene_lo, scene_hi, *, m
     z_near = z_near + pad
     pad_xy = 1e-4 * (hi_xy - lo_xy) + 1e-6
     lo_xy, hi_xy = lo_xy - pad_xy, hi_xy + pad_xy
-    return _orthographic_box(lo_xy[0], hi_xy[0], lo_xy[1], hi_xy[1], -z_near, -z_far) @ view
+    return matmul(_orthographic_box(lo_xy[0], hi_xy[0], lo_xy[1], hi_xy[1], -z_near, -z_far), view)
 
 
 def spot_light_matrix(position, direction, cos_outer, range, *, near_fraction: float = NEAR_FRACTION) -> jax.Array:
@@ -180,7 +181,7 @@ def spot_light_matrix(position, direction, cos_outer, range, *, near_fraction: f
     forward = _unit(jnp.asarray(direction, jnp.float32))
     fov = jnp.minimum(2.0 * jnp.arccos(jnp.clip(cos_outer, -1.0, 1.0)) + SPOT_MARGIN, np.radians(170.0))
     projection = perspective(fov, 1.0, near_fraction * range, range)
-    return projection @ look_at(position, position + forward, _up_for(forward))
+    return matmul(projection, look_at(position, position + forward, _up_for(forward)))
 
 
 def point_light_matrices(position, range, *, near_fraction: float = NEAR_FRACTION) -> jax.Array:
@@ -192,7 +193,7 @@ def point_light_matrices(position, range, *, near_fraction: float = NEAR_FRACTIO
     position = jnp.asarray(position, jnp.float32)
     projection = perspective(jnp.float32(np.pi / 2), 1.0, near_fraction * range, range)
     views = jax.vmap(lambda f, u: look_at(position, position + f, u))(jnp.asarray(CUBE_FORWARD), jnp.asarray(CUBE_UP))
-    return projection @ views
+    return matmul(projection, views)
 
 
 def light_matrices(lights: Lights, camera: Camera, scene_lo, scene_hi, *, max_distance: float | None = None) -> jax.Array:
@@ -312,7 +313,7 @@ def _project(maps: ShadowMaps, points: jax.Array):
     """Face, texel coordinates, window depth and in-map flag of per-light points [P, K, 3]."""
     size = maps.depths.shape[-1]
     face, matrix = _face_matrices(maps, points)
-    clip = jnp.einsum("pkij,pkj->pki", matrix[..., :3], points) + matrix[..., 3]
+    clip = einsum("pkij,pkj->pki", matrix[..., :3], points) + matrix[..., 3]
     w = clip[..., 3]
     safe_w = jnp.where(w > 0, w, 1.0)
     ndc = clip[..., :3] / safe_w[..., None]
@@ -374,7 +375,7 @@ def _shadow_factor(maps, positions, normals, *, bias, normal_offset, pcf):
     points = jnp.broadcast_to(positions[:, None, :], (positions.shape[0], count, 3))
 
     _, matrix = _face_matrices(maps, points)
-    w = jnp.einsum("pkj,pkj->pk", matrix[..., 3, :3], points) + matrix[..., 3, 3]
+    w = einsum("pkj,pkj->pk", matrix[..., 3, :3], points) + matrix[..., 3, 3]
     scale = jnp.minimum(jnp.linalg.norm(matrix[..., 0, :3], axis=-1), jnp.linalg.norm(matrix[..., 1, :3], axis=-1))
     texel = 2.0 * jnp.abs(w) / (size * scale)
     offset = points + normals[:, None, :] * (normal_offset * 0.5 * pcf * texel)[..., None]
