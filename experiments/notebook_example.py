@@ -5,6 +5,8 @@ forward shading, compares the tiled rasterizer with its brute-force reference, a
 of the image with respect to a light's intensity.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,7 +38,7 @@ print("tiled == reference:", bool(jnp.all(tiled.triangle_id == brute.triangle_id
 
 # Gradient of the mean image brightness with respect to the lights' colours.
 def brightness(color):
-    lit = scene.replace(lights=scene.lights.__class__(**{**scene.lights.__dict__, "color": color}))
+    lit = scene.replace(lights=dataclasses.replace(scene.lights, color=color))
     return jnp.mean(pipeline(params, lit, outputs="hdr")["hdr"])
 
 

@@ -12,6 +12,7 @@ impossible value raises :class:`ConfigError` with the file and the dotted key, e
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import pathlib
 import tomllib
@@ -298,8 +299,8 @@ def camera_path(config: dict, scene: Scene) -> list:
     cameras = []
     for i in range(frames):
         t = i / max(frames - 1, 1)
-        cameras.append(camera.__class__(**{**camera.__dict__, "eye": (1 - t) * camera.eye + t * eye_end,
-                                           "target": (1 - t) * camera.target + t * target_end}))
+        cameras.append(dataclasses.replace(camera, eye=(1 - t) * camera.eye + t * eye_end,
+                                           target=(1 - t) * camera.target + t * target_end))
     return cameras
 
 
@@ -325,7 +326,12 @@ def build_pipeline(config: dict) -> tuple[Pipeline, dict]:
                 known = sorted(params.get(name, {}))
                 raise ConfigError(f"{source}: pipeline.params.{name}.{key}: unknown parameter (known: {known})")
             default = params[name][key]
-            array = jnp.asarray(value, jnp.float32)
+            try:
+                array = jnp.asarray(value, jnp.float32)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{source}: pipeline.params.{name}.{key}: expected numbers, got {value!r}") from None
+            if not bool(jnp.all(jnp.isfinite(array))):
+                raise ConfigError(f"{source}: pipeline.params.{name}.{key}: expected finite numbers, got {value!r}")
             if array.shape != default.shape:
                 raise ConfigError(f"{source}: pipeline.params.{name}.{key}: expected shape {list(default.shape)}, got {list(array.shape)}")
             params[name][key] = array

@@ -13,6 +13,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from gpupro.bench import device_info
@@ -35,7 +36,8 @@ def _write_images(buffers: dict, config: dict, out_dir: pathlib.Path, stem: str)
     images = {k: np.asarray(v) for k, v in buffers.items() if k != "counters"}
     if outputs.get("exr", True):
         path = out_dir / f"{stem}.exr"
-        suffixes = {k: s for k, s in _EXR_SUFFIXES.items() if k in images and images[k].shape[-1:] == (len(s),) or (k in images and images[k].ndim == 2 and len(s) == 1)}
+        channels = lambda image: 1 if image.ndim == 2 else image.shape[-1]
+        suffixes = {k: s for k, s in _EXR_SUFFIXES.items() if k in images and channels(images[k]) == len(s)}
         write_exr(path, images, half=outputs.get("half", False), channel_suffixes=suffixes)
         written.append(path.name)
     preview = outputs.get("preview", "ldr" if "ldr" in images else "hdr")
@@ -47,6 +49,17 @@ def _write_images(buffers: dict, config: dict, out_dir: pathlib.Path, stem: str)
             write_preview(path, images[preview])
         written.append(path.name)
     return written
+
+
+def _check_frame(buffers: dict, index: int):
+    """Refuses to write a wrong picture: non-finite values, or triangles skipped for NaN positions."""
+    for name, value in buffers.items():
+        if name != "counters" and jnp.issubdtype(value.dtype, jnp.floating) and not bool(jnp.all(jnp.isfinite(value))):
+            raise ValueError(f"frame {index}: buffer {name!r} has NaN or infinite values")
+    for pass_name, counters in buffers["counters"].items():
+        skipped = int(counters.get("nonfinite_triangles", 0))
+        if skipped:
+            raise ValueError(f"frame {index}: pass {pass_name!r} met {skipped} triangles with NaN or infinite positions")
 
 
 def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.stderr) -> dict:
@@ -76,6 +89,7 @@ def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
             start = time.perf_counter()
             buffers = jax.block_until_ready(compiled(params, frame_scene))
             times_ms.append(1e3 * (time.perf_counter() - start))
+        _check_frame(buffers, index)
         if frames > 1:
             written += _write_images(buffers, config, out_dir, f"{config['name']}_{index:04d}")
         if progress is not None:

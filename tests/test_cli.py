@@ -8,6 +8,7 @@ import pathlib
 import shutil
 import tomllib
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -151,3 +152,24 @@ def test_camera_path_writes_one_exr_per_frame(tmp_path, capsys):
     frames = [read_exr(out / f"orbit_{i:04d}.exr")["hdr"] for i in range(3)]
     assert all(f.shape == (32, 32, 3) for f in frames)
     assert np.abs(frames[0] - frames[1]).mean() > 1e-3 and np.abs(frames[1] - frames[2]).mean() > 1e-3
+
+
+def test_nan_parameters_are_refused_by_name(tmp_path, capsys):
+    config = tmp_path / "nan.toml"
+    config.write_text('[scene]\nname = "plane"\n[camera]\nresolution = [16, 16]\n'
+                      '[pipeline.params.deferred]\nambient = [nan, 0.0, 0.0]\n')
+    assert main(["run", str(config), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "pipeline.params.deferred.ambient" in err and "finite" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_frames_with_nan_or_skipped_triangles_are_not_written():
+    from gpupro.runner import _check_frame
+
+    good = {"hdr": jnp.ones((2, 2, 3)), "counters": {"raster": {"nonfinite_triangles": jnp.int32(0)}}}
+    _check_frame(good, 0)
+    with pytest.raises(ValueError, match="frame 3: buffer 'hdr'"):
+        _check_frame({**good, "hdr": jnp.full((2, 2, 3), jnp.nan)}, 3)
+    with pytest.raises(ValueError, match="2 triangles with NaN"):
+        _check_frame({**good, "counters": {"raster": {"nonfinite_triangles": jnp.int32(2)}}}, 0)
