@@ -10,6 +10,7 @@ import pytest
 
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights, make_materials, make_mesh, no_lights, point_lights
 from gpupro.scene.light_generators import uniform_in_box
+from gpupro.raster import Fragments
 from gpupro.shading import DIELECTRIC_F0, DISTANCE_EPSILON_SQ, shade_deferred, shade_forward
 
 EYE = np.array([0.0, 3.0, 3.0], np.float32)
@@ -182,6 +183,12 @@ def test_twenty_thousand_lights_are_linear_and_memory_bounded():
     assert int(counters["lighting_computations"]) == int(jnp.sum(g["coverage"])) * 20_000
 
 
+def as_fragments(triangle_id, barycentrics):
+    """Fragments for shade_forward; derivatives are zero (these materials have no textures)."""
+    zeros = np.zeros_like(barycentrics)
+    return Fragments(jnp.asarray(triangle_id), jnp.ones(triangle_id.shape), jnp.asarray(barycentrics), zeros, zeros, {})
+
+
 def random_mesh_fragments(seed, shape=SHAPE, faces=6):
     """Random triangles (some seen from behind), materials, and visible-triangle ids and barycentrics."""
     rng = np.random.default_rng(seed)
@@ -222,7 +229,7 @@ def test_forward_equals_deferred_on_the_same_surfaces():
     options = dict(ambient=(0.1, 0.2, 0.3), background=(0.5, 0.0, 1.0), light_chunk=4,
                    shadow=jnp.asarray(np.random.default_rng(6).uniform(size=SHAPE + (2,)), jnp.float32))
     deferred, deferred_counters = shade_deferred(g, lights, EYE, **options)
-    forward, forward_counters = shade_forward_jit(triangle_id, barycentrics, mesh, materials, lights, EYE, **options)
+    forward, forward_counters = shade_forward_jit(as_fragments(triangle_id, barycentrics), mesh, materials, lights, EYE, **options)
     np.testing.assert_allclose(forward, deferred, rtol=1e-5, atol=1e-6)
     assert {k: int(v) for k, v in forward_counters.items()} == {k: int(v) for k, v in deferred_counters.items()}
 
@@ -268,8 +275,8 @@ def test_jit_matches_eager_and_counts_work():
 
     mesh, materials, triangle_id, barycentrics = random_mesh_fragments(9)
     options = dict(options, distribution="beckmann")
-    eager, _ = shade_forward(triangle_id, barycentrics, mesh, materials, lights, EYE, **options)
-    jitted, counters = shade_forward_jit(triangle_id, barycentrics, mesh, materials, lights, EYE, **options)
+    eager, _ = shade_forward(as_fragments(triangle_id, barycentrics), mesh, materials, lights, EYE, **options)
+    jitted, counters = shade_forward_jit(as_fragments(triangle_id, barycentrics), mesh, materials, lights, EYE, **options)
     np.testing.assert_allclose(jitted, eager, rtol=1e-5, atol=1e-7)  # fusion changes float32 rounding
     assert int(counters["lighting_computations"]) == int(np.sum(triangle_id >= 0)) * 11
 

@@ -96,3 +96,17 @@ def test_bad_pass_options_are_named():
         post_pass(operator="filmic")
     with pytest.raises(ValueError, match="odd pcf"):
         shadow_maps_pass(pcf=2)
+
+
+def test_forward_equals_deferred_on_textured_surfaces():
+    rng = np.random.default_rng(3)
+    positions = np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], np.float32)
+    mesh = gp.scene.make_mesh(positions, [[0, 1, 2], [0, 2, 3]], uv=positions[:, :2] / 4 + 0.5)
+    materials = gp.scene.make_materials([[1.0, 1.0, 1.0]], texture_index=[0], textures=rng.uniform(size=(1, 16, 16, 3)))
+    lights = gp.scene.point_lights([[0.5, 0.5, 1.5]], [[4.0, 4.0, 4.0]], 10.0)
+    camera = gp.scene.make_camera((0.3, -0.5, 3.0), (0.0, 0.0, 0.0), resolution=RES)
+    scene = gp.scene.Scene(mesh, materials, lights, camera)
+    deferred = np.asarray(gp.render(scene, outputs="hdr")["hdr"])
+    forward = np.asarray(gp.render(scene, gp.default_pipeline(shading="forward"), outputs="hdr")["hdr"])
+    np.testing.assert_allclose(forward, deferred, rtol=1e-5, atol=1e-6)
+    assert deferred.std() > 0.05  # the texture shows

@@ -105,10 +105,9 @@ def deferred_pass(*, name: str = "shading", distribution: str = "ggx", light_chu
 
 
 def _forward(params, inputs, scene, *, distribution, light_chunk, shadows):
-    hdr, counters = shade_forward(inputs["triangle_id"], inputs["barycentrics"], scene.mesh, scene.materials,
-                                  scene.lights, scene.camera.eye, ambient=params["ambient"], distribution=distribution,
-                                  light_chunk=light_chunk, shadow=inputs["shadow"] if shadows else None,
-                                  background=params["background"])
+    hdr, counters = shade_forward(_fragments_from(inputs), scene.mesh, scene.materials, scene.lights, scene.camera.eye,
+                                  ambient=params["ambient"], distribution=distribution, light_chunk=light_chunk,
+                                  shadow=inputs["shadow"] if shadows else None, background=params["background"])
     return {"hdr": hdr}, counters
 
 
@@ -116,7 +115,7 @@ def forward_pass(*, name: str = "shading", distribution: str = "ggx", light_chun
                  ambient=(0.0, 0.0, 0.0), background=(0.0, 0.0, 0.0)) -> Pass:
     """Forward shading straight from the rasterizer's fragments, without a stored G-buffer → ``hdr``."""
     _check_distribution(distribution)
-    inputs = ("triangle_id", "barycentrics") + (("shadow",) if shadows else ())
+    inputs = FRAGMENT_BUFFERS + (("shadow",) if shadows else ())
     params = {"ambient": jnp.asarray(ambient, jnp.float32), "background": jnp.asarray(background, jnp.float32)}
     return Pass(name, _forward, inputs, ("hdr",), options=dict(distribution=distribution, light_chunk=light_chunk,
                                                                shadows=shadows), params=params)

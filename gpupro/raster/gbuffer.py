@@ -41,8 +41,13 @@ def _normalize(v: jax.Array) -> jax.Array:
     return v / jnp.where(length > 0, length, 1.0)
 
 
-def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Materials, camera: Camera) -> dict:
-    """Builds the G-buffer dict (see the module docstring) from rasterized ``fragments``."""
+def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Materials, eye: jax.Array) -> dict:
+    """Surface attributes of the visible triangles, as seen from ``eye`` [3] (normals face it).
+
+    ``fragments`` needs ``triangle_id`` [H, W] and ``barycentrics``, ``bary_dx``, ``bary_dy``
+    [H, W, 3]. Returns the buffers of the module docstring except ``triangle_id``, ``depth`` and
+    ``view_depth``: the part that forward shading (which stores no G-buffer) needs as well.
+    """
     tri = fragments.triangle_id
     covered = tri >= 0
     mask = covered[..., None]
@@ -56,10 +61,9 @@ def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     uv = interpolate(mesh.uv, b)
     corners = mesh.positions[face]
     face_normal = _normalize(jnp.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]))
-    facing = jnp.sum(face_normal * (camera.eye - position), axis=-1, keepdims=True)
+    facing = jnp.sum(face_normal * (eye - position), axis=-1, keepdims=True)
     sign = jnp.where(facing < 0, -1.0, 1.0)
     normal = _normalize(interpolate(mesh.normals, b)) * sign
-    forward = _normalize(camera.target - camera.eye)
 
     material = jnp.where(covered, mesh.material_ids[jnp.where(covered, tri, 0)], -1)
     m = jnp.maximum(material, 0)
@@ -75,10 +79,7 @@ def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     zero = lambda x: jnp.where(mask if x.ndim == 3 else covered, x, 0.0)
     return {
         "coverage": covered.astype(jnp.float32),
-        "triangle_id": tri,
         "material_id": material,
-        "depth": fragments.depth,
-        "view_depth": jnp.where(covered, jnp.sum((position - camera.eye) * forward, axis=-1), 0.0),
         "position": position,
         "normal": zero(normal),
         "face_normal": zero(face_normal * sign),
@@ -92,6 +93,15 @@ def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
         "duvdx": duvdx,
         "duvdy": duvdy,
     }
+
+
+def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Materials, camera: Camera) -> dict:
+    """Builds the G-buffer dict (see the module docstring) from rasterized ``fragments``."""
+    surface = surface_from_fragments(fragments, mesh, materials, camera.eye)
+    covered = fragments.triangle_id >= 0
+    forward = _normalize(camera.target - camera.eye)
+    view_depth = jnp.where(covered, jnp.sum((surface["position"] - camera.eye) * forward, axis=-1), 0.0)
+    return dict(surface, triangle_id=fragments.triangle_id, depth=fragments.depth, view_depth=view_depth)
 
 
 def render_gbuffer(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> tuple[dict, dict]:
