@@ -45,7 +45,7 @@ for _t in (
     Technique("raster.gbuffer", "G-buffer with exact screen-space derivatives and trilinear texturing",
               "OpenGL 4.6 §8.14 (LOD); GPU Pro 6 / Mikkelsen (derivatives for surface gradients)", "raster",
               "gpupro.raster.gbuffer"),
-    Technique("shading.deferred", "Deferred shading, brute-force light loop", "Olsson thesis, Paper I §2 (baseline)",
+    Technique("shading.deferred", "Deferred shading, brute-force light loop", "Olsson thesis ch. 2 (Real-Time Many-Light Shading); Paper I §2 (its tiled form)",
               "shading", "gpupro.shading.deferred", ("distribution", "light_chunk", "shadows"),
               ("ambient", "background", "scene.lights", "scene.materials"), status="reference"),
     Technique("shading.forward", "Forward shading from fragments", "Olsson thesis, Paper I §3 (tiled forward shading, untiled here)", "shading",
