@@ -12,9 +12,8 @@ import jax.numpy as jnp
 
 from gpupro.pipeline.graph import Pass, Pipeline
 from gpupro.post.tonemapping import OPERATORS, apply_exposure, srgb_encode, tonemap
-from gpupro.raster.gbuffer import GBUFFER_BUFFERS, gbuffer_from_fragments
-from gpupro.raster.rasterize import Fragments, rasterize
-from gpupro.scene.camera import to_clip
+from gpupro.raster.gbuffer import GBUFFER_BUFFERS, gbuffer_from_fragments, rasterize_scene
+from gpupro.raster.rasterize import Fragments
 from gpupro.shading.brdfs import DISTRIBUTIONS
 from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.forward import shade_forward
@@ -25,10 +24,7 @@ SURFACE_BUFFERS = tuple(name for name in GBUFFER_BUFFERS if name not in FRAGMENT
 
 
 def _raster(params, inputs, scene, *, cull_backfaces, tile, tile_capacity):
-    camera = scene.camera
-    clip = to_clip(scene.mesh.positions, camera.view_projection())
-    fragments = rasterize(clip, scene.mesh.faces, resolution=camera.resolution, cull_backfaces=cull_backfaces,
-                          tile=tile, tile_capacity=tile_capacity)
+    fragments = rasterize_scene(scene, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity)
     return {name: getattr(fragments, name) for name in FRAGMENT_BUFFERS}, fragments.counters
 
 
@@ -76,9 +72,13 @@ def shadow_maps_pass(*, name: str = "shadow_maps", count: int = 1, resolution: i
                              bias=bias, normal_offset=normal_offset))
 
 
-def _check_distribution(distribution: str):
+def _shading_pass(name, fn, inputs, *, distribution, light_chunk, shadows, ambient, background) -> Pass:
+    """A shading pass → ``hdr``: ``inputs`` (+ ``shadow`` with ``shadows``), params ambient and background."""
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"shading distribution must be one of {DISTRIBUTIONS}, got {distribution!r}")
+    params = {"ambient": jnp.asarray(ambient, jnp.float32), "background": jnp.asarray(background, jnp.float32)}
+    return Pass(name, fn, inputs + (("shadow",) if shadows else ()), ("hdr",),
+                options=dict(distribution=distribution, light_chunk=light_chunk, shadows=shadows), params=params)
 
 
 def _deferred(params, inputs, scene, *, distribution, light_chunk, shadows):
@@ -97,11 +97,8 @@ def deferred_pass(*, name: str = "shading", distribution: str = "ggx", light_chu
     Params: ``ambient`` [3] (ambient radiance scaling the diffuse albedo), ``background`` [3].
     With ``shadows``, consumes ``shadow`` [H, W, K] for the first K lights.
     """
-    _check_distribution(distribution)
-    inputs = SURFACE_BUFFERS + (("shadow",) if shadows else ())
-    params = {"ambient": jnp.asarray(ambient, jnp.float32), "background": jnp.asarray(background, jnp.float32)}
-    return Pass(name, _deferred, inputs, ("hdr",), options=dict(distribution=distribution, light_chunk=light_chunk,
-                                                                shadows=shadows), params=params)
+    return _shading_pass(name, _deferred, SURFACE_BUFFERS, distribution=distribution, light_chunk=light_chunk,
+                         shadows=shadows, ambient=ambient, background=background)
 
 
 def _forward(params, inputs, scene, *, distribution, light_chunk, shadows):
@@ -114,11 +111,8 @@ def _forward(params, inputs, scene, *, distribution, light_chunk, shadows):
 def forward_pass(*, name: str = "shading", distribution: str = "ggx", light_chunk: int | None = None, shadows: bool = False,
                  ambient=(0.0, 0.0, 0.0), background=(0.0, 0.0, 0.0)) -> Pass:
     """Forward shading straight from the rasterizer's fragments, without a stored G-buffer → ``hdr``."""
-    _check_distribution(distribution)
-    inputs = FRAGMENT_BUFFERS + (("shadow",) if shadows else ())
-    params = {"ambient": jnp.asarray(ambient, jnp.float32), "background": jnp.asarray(background, jnp.float32)}
-    return Pass(name, _forward, inputs, ("hdr",), options=dict(distribution=distribution, light_chunk=light_chunk,
-                                                               shadows=shadows), params=params)
+    return _shading_pass(name, _forward, FRAGMENT_BUFFERS, distribution=distribution, light_chunk=light_chunk,
+                         shadows=shadows, ambient=ambient, background=background)
 
 
 def _post(params, inputs, scene, *, operator):

@@ -104,12 +104,20 @@ def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     return dict(surface, triangle_id=fragments.triangle_id, depth=fragments.depth, view_depth=view_depth)
 
 
-def render_gbuffer(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> tuple[dict, dict]:
-    """Rasterizes ``scene`` from its camera and returns ``(gbuffer dict, rasterizer counters)``.
+def rasterize_scene(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> Fragments:
+    """Rasterizes ``scene``'s mesh from its camera (:func:`gpupro.raster.rasterize`, at the camera's resolution).
 
     ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (tile, capacities).
     """
     camera = scene.camera
     clip = to_clip(scene.mesh.positions, camera.view_projection())
-    fragments = rasterize(clip, scene.mesh.faces, resolution=camera.resolution, cull_backfaces=cull_backfaces, **raster_options)
-    return gbuffer_from_fragments(fragments, scene.mesh, scene.materials, camera), fragments.counters
+    return rasterize(clip, scene.mesh.faces, resolution=camera.resolution, cull_backfaces=cull_backfaces, **raster_options)
+
+
+def render_gbuffer(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> tuple[dict, dict]:
+    """Rasterizes ``scene`` from its camera and returns ``(gbuffer dict, rasterizer counters)``.
+
+    ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (tile, capacities).
+    """
+    fragments = rasterize_scene(scene, cull_backfaces=cull_backfaces, **raster_options)
+    return gbuffer_from_fragments(fragments, scene.mesh, scene.materials, scene.camera), fragments.counters

@@ -82,7 +82,7 @@ def _rasterize_padded(clip, faces, *, resolution, cull_backfaces, tile, tile_cap
     triangle_id, depth, counters = rasterize_tiled(
         setup, resolution=resolution, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity, chunk_batch=chunk_batch
     )
-    counters["nonfinite_triangles"] = jnp.sum(~jnp.all(jnp.isfinite(clip[faces]), axis=(1, 2))).astype(jnp.int32)
+    counters["nonfinite_triangles"] = jnp.sum(~setup.finite).astype(jnp.int32)
     return _fragments(setup, triangle_id, depth, counters, resolution)
 
 

@@ -44,7 +44,7 @@ class TriangleSetup(typing.NamedTuple):
     ``owns_edge`` bool [F, 3]: whether pixel centres exactly on edge i belong to this triangle
     (top-left rule); ``depth_coef`` float32 [F, 3]: window depth = 0.5 + Σ_i E_i depth_coef_i;
     ``visible`` bool [F]: not culled (not degenerate, not back-facing when culling, not wholly
-    outside one clip plane); ``bbox`` float32 [F, 4]: conservative pixel bounding box
+    outside one clip plane); ``finite`` bool [F]: all vertex coordinates finite; ``bbox`` float32 [F, 4]: conservative pixel bounding box
     (xmin, ymin, xmax, ymax) of the part of the triangle inside the near and far planes.
     """
 
@@ -53,6 +53,7 @@ class TriangleSetup(typing.NamedTuple):
     owns_edge: jax.Array
     depth_coef: jax.Array
     visible: jax.Array
+    finite: jax.Array
     bbox: jax.Array
 
 
@@ -91,7 +92,7 @@ def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int,
     if cull_backfaces:
         visible &= det < 0
     edges = jnp.stack([a, b, residual], axis=-1)
-    return TriangleSetup(edges, origin, owns_edge, depth_coef, visible, _clipped_bbox(c, width, height))
+    return TriangleSetup(edges, origin, owns_edge, depth_coef, visible, finite, _clipped_bbox(c, width, height))
 
 
 def _lexicographic_less(p: jax.Array, q: jax.Array) -> jax.Array:
