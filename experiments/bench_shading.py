@@ -22,7 +22,8 @@ import jax
 import gpupro as gp
 from gpupro.bench import device_info, peak_memory_bytes, time_function
 from gpupro.scene.light_generators import uniform_in_box
-from gpupro.shading.deferred import default_light_chunk, shade_deferred
+from gpupro.shading import default_light_chunk
+from gpupro.techniques.lights.deferred import shade_deferred
 
 
 def main(argv=None) -> list[dict]:

@@ -1,72 +1,175 @@
-"""The technique catalogue behind ``gpupro list``: what is implemented, from which source, how far.
+"""The catalogue behind ``gpupro list`` and ``docs/``: generated from the technique registry and the
+config schema, never written by hand, so it cannot drift from the code.
 
-Each entry names the module that implements it, the seed chapter it follows, its family, its static
-options and differentiable parameters, and a status: ``reference`` (a brute-force oracle),
-``implemented`` (with its reference test), or ``partial`` (what is missing is said in ``notes``).
+- :func:`format_catalogue`: the table of techniques (``gpupro list``);
+- :func:`reference_page`: one technique's page, with its buffer, option, parameter, capacity and
+  counter tables and its module docstring (``gpupro list ID``, ``docs/techniques/<id>.md``);
+- :func:`scenes_table`, :func:`buffers_table`, :func:`config_reference`: the scene names, every buffer
+  with its producers and channels, every config key (``gpupro list --scenes / --buffers / --config``,
+  ``docs/reference.md``);
+- :func:`write_docs`: all of those as files (``gpupro docs DIR``).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import importlib
+import inspect
+import math
+import pathlib
+
+from gpupro.technique import Technique, registered
 
 
-@dataclasses.dataclass(frozen=True)
-class Technique:
-    """One catalogue entry."""
-
-    id: str
-    title: str
-    source: str
-    family: str
-    module: str
-    options: tuple[str, ...] = ()
-    params: tuple[str, ...] = ()
-    status: str = "implemented"
-    notes: str = ""
+def _by_family() -> list[Technique]:
+    return sorted(registered().values(), key=lambda t: (t.family, t.status == "reference", t.id))
 
 
-TECHNIQUES: dict[str, Technique] = {}
+def _align(rows: list[tuple[str, ...]]) -> str:
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]) - 1)]
+    return "\n".join("  ".join(r[i].ljust(widths[i]) for i in range(len(widths))) + "  " + r[-1] for r in rows)
 
 
-def register(technique: Technique) -> Technique:
-    """Adds ``technique`` to the catalogue; ids are unique."""
-    if technique.id in TECHNIQUES:
-        raise ValueError(f"technique id {technique.id!r} is registered twice")
-    TECHNIQUES[technique.id] = technique
-    return technique
+def format_catalogue() -> str:
+    """The technique catalogue as an aligned text table: id, family, status, reference, title."""
+    rows = [("id", "family", "status", "reference", "title")]
+    rows += [(t.id, t.family, t.status, t.reference or "-", t.title) for t in _by_family()]
+    return _align(rows)
 
 
-for _t in (
-    Technique("raster.tiled", "Tiled rasterizer with conservative triangle-tile binning",
-              "GPU Gems 2 ch. 42 (conservative rasterization); Olano & Greer 1997 (homogeneous rasterization)",
-              "raster", "gpupro.raster.tiled", ("tile", "tile_capacity", "pair_capacity", "chunk_batch", "cull_backfaces")),
-    Technique("raster.reference", "Brute-force rasterizer (every triangle at every pixel)", "oracle", "raster",
-              "gpupro.raster.reference", ("cull_backfaces",), status="reference"),
-    Technique("raster.gbuffer", "G-buffer with exact screen-space derivatives and trilinear texturing",
-              "OpenGL 4.6 §8.14 (LOD); GPU Pro 6 / Mikkelsen (derivatives for surface gradients)", "raster",
-              "gpupro.raster.gbuffer"),
-    Technique("shading.deferred", "Deferred shading, brute-force light loop", "Olsson thesis ch. 2 (Real-Time Many-Light Shading); Paper I §2 (its tiled form)",
-              "shading", "gpupro.shading.deferred", ("distribution", "light_chunk", "shadows"),
-              ("ambient", "background", "scene.lights", "scene.materials"), status="reference"),
-    Technique("shading.forward", "Forward shading from fragments", "Olsson thesis, Paper I §3 (tiled forward shading, untiled here)", "shading",
-              "gpupro.shading.forward", ("distribution", "light_chunk", "shadows"), ("ambient", "background")),
-    Technique("shading.brdf", "Lambert, normalized Blinn-Phong, Cook-Torrance (GGX, Beckmann), Smith, Schlick",
-              "Walter et al. 2007; Mikkelsen (seed 004) Beckmann ≈ normalized Phong", "shading",
-              "gpupro.shading.brdfs", ("distribution",), ("roughness", "metallic", "base_color")),
-    Technique("shadow.maps", "Shadow maps: orthographic (fitted to the view), spot, point-light cube maps; PCF",
-              "Williams 1978; Reeves et al. 1987 (PCF); Olsson thesis Paper III (cube shadow maps for many lights)",
-              "shadow", "gpupro.shadow.shadow_maps", ("count", "resolution", "pcf", "max_distance", "bias", "normal_offset")),
-    Technique("post.tonemap", "Exposure, Reinhard, fitted ACES, sRGB", "Reinhard et al. 2002; Narkowicz 2016", "post",
-              "gpupro.post.tonemapping", ("operator",), ("exposure",)),
-    Technique("pipeline.graph", "Frame graph wired by named buffers", "GPU Pro 6 VII.2 (Shader Shaker)", "pipeline",
-              "gpupro.pipeline.graph"),
-):
-    register(_t)
+def _table(header: tuple[str, ...], rows: list[tuple]) -> str:
+    """A Markdown table (``|`` in cells escaped)."""
+    cell = lambda v: str(v).replace("|", "\\|").replace("\n", " ")
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
 
 
-def format_catalogue(techniques=None) -> str:
-    """The catalogue as an aligned text table (id, family, status, title, source)."""
-    rows = [("id", "family", "status", "title", "source")]
-    rows += [(t.id, t.family, t.status, t.title, t.source) for t in (techniques or TECHNIQUES.values())]
-    widths = [max(len(r[i]) for r in rows) for i in range(4)]
-    return "\n".join("  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows)
+def _value(v) -> str:
+    return "none" if v is None else f"`{v!r}`"
+
+
+def _range(p) -> str:
+    lo = "−∞" if p.lower == -math.inf else f"{p.lower:g}"
+    hi = "∞" if p.upper == math.inf else f"{p.upper:g}"
+    return f"[{lo}, {hi}]"
+
+
+def reference_page(technique: str | Technique) -> str:
+    """The Markdown reference page of a technique (an id or a specification)."""
+    t = registered()[technique] if isinstance(technique, str) else technique
+    parts = [f"# `{t.id}`: {t.title}", "",
+             f"- family: `{t.family}`; status: `{t.status}`",
+             f"- source: {t.source}",
+             f"- module: `{t.module}`",
+             f"- reference: `{t.reference}`" if t.reference else "- reference: none (it is not an acceleration of a simpler technique)",
+             f"- per-frame state: {'yes' if t.init_state else 'no'}",
+             f"- config: `pipeline.passes = [..., \"{t.id}\", ...]`, options under `[pipeline.options.{t.id}]`, "
+             f"parameters under `[pipeline.params.{t.id}]`"]
+    if t.notes:
+        parts += ["", t.notes]
+    buffers = lambda bs: _table(("buffer", "channels", "kind", "doc"),
+                                [(f"`{b.name}`" + (" (optional)" if b.optional else ""), b.channels or "-",
+                                  "image" if b.image else "data", b.doc) for b in bs])
+    if t.inputs:
+        parts += ["", "## Inputs", "", buffers(t.inputs)]
+    parts += ["", "## Outputs", "", buffers(t.outputs)]
+    if t.options:
+        parts += ["", "## Options (static)", "", _table(("option", "default", "allowed", "doc"),
+                  [(f"`{o.name}`", _value(o.default), o.check.expected, o.doc) for o in t.options])]
+    if t.params:
+        parts += ["", "## Parameters", "", _table(("parameter", "default", "shape", "unit", "range", "differentiable", "doc"),
+                  [(f"`{p.name}`", _value(p.default), list(p.shape), p.unit, _range(p),
+                    "no (step function)" if p.discontinuous else "yes", p.doc) for p in t.params])]
+    if t.capacities:
+        parts += ["", "## Capacities", "", _table(("option", "overflow counter", "on overflow", "doc"),
+                  [(f"`{c.option}`", f"`{c.counter}`", "grown and rendered again" if c.lossy else "more steps, nothing lost",
+                    c.doc) for c in t.capacities])]
+    if t.counters:
+        parts += ["", "## Counters", "", _table(("counter", "doc"), [(f"`{c.name}`", c.doc) for c in t.counters])]
+    doc = inspect.getdoc(importlib.import_module(t.module))
+    if doc:
+        parts += ["", "## From the module", "", "```text", doc, "```"]
+    return "\n".join(parts) + "\n"
+
+
+def scenes_table() -> str:
+    """The procedural scene names (``scene.name``) with the first line of each one's docstring."""
+    from gpupro.scene.procedural import SCENES
+
+    rows = [("scene", "description")]
+    rows += [(name, (inspect.getdoc(fn) or "").splitlines()[0]) for name, fn in SCENES.items()]
+    return _align(rows)
+
+
+def buffers_table() -> str:
+    """Every buffer a registered technique produces: name, producers, channels, doc."""
+    producers: dict[str, list] = {}
+    for t in _by_family():
+        for b in t.outputs:
+            producers.setdefault(b.name, []).append((t.id, b))
+    rows = [("buffer", "produced by", "channels", "doc")]
+    for name in sorted(producers):
+        ids = ", ".join(i for i, _ in producers[name])
+        b = producers[name][0][1]
+        rows.append((name, ids, (b.channels or "-") + ("" if b.image else " (data)"), b.doc))
+    return _align(rows)
+
+
+def _expected(check) -> str:
+    """What a config schema check expects, in words (the checks return (ok, expected) for any value)."""
+    try:
+        return check(object())[1]
+    except Exception:  # a check that cannot even look at an unrelated value
+        return "see gpupro/config.py"
+
+
+def _config_rows(schema: dict, prefix: str = "") -> list[tuple[str, str]]:
+    rows = []
+    for key, rule in schema.items():
+        if isinstance(rule, dict):
+            rows += _config_rows(rule, f"{prefix}{key}.")
+        else:
+            rows.append((f"{prefix}{key}", _expected(rule)))
+    return rows
+
+
+def config_reference() -> str:
+    """Every key of an experiment config with what it accepts, as an aligned text table."""
+    from gpupro.config import SCHEMA
+
+    return _align([("key", "accepts")] + _config_rows(SCHEMA))
+
+
+def reference_md() -> str:
+    """``docs/reference.md``: config keys, scenes, passes and buffers."""
+    block = lambda text: "```text\n" + text + "\n```"
+    return "\n".join([
+        "# Reference: config keys, scenes, passes, buffers", "",
+        "Generated by `gpupro docs docs` from the config schema and the technique registry; "
+        "the tests check it is current.", "",
+        "## Config keys", "", block(config_reference()), "",
+        "Pass options and parameters (`pipeline.options.<pass>.<option>`, `pipeline.params.<pass>.<name>`) "
+        "are listed on each technique's page in `docs/techniques/`.", "",
+        "## Scenes (`scene.name`)", "", block(scenes_table()), "",
+        "## Passes (`pipeline.passes`)", "", block(format_catalogue()), "",
+        "## Buffers (`outputs.buffers`)", "", block(buffers_table()), "",
+    ])
+
+
+def write_docs(folder) -> list[pathlib.Path]:
+    """Writes ``reference.md`` and ``techniques/<id>.md`` (plus ``techniques/README.md``) under ``folder``;
+    returns the paths written. Pages of techniques that no longer exist are removed."""
+    folder = pathlib.Path(folder)
+    pages = folder / "techniques"
+    pages.mkdir(parents=True, exist_ok=True)
+    written = {pages / f"{t.id}.md": reference_page(t) for t in _by_family()}
+    index = ["# Techniques", "", "Generated by `gpupro docs docs`; one page per registered technique.", "",
+             _table(("id", "family", "status", "title"),
+                    [(f"[`{t.id}`]({t.id}.md)", t.family, t.status, t.title) for t in _by_family()])]
+    written[pages / "README.md"] = "\n".join(index) + "\n"
+    written[folder / "reference.md"] = reference_md()
+    for stale in set(pages.glob("*.md")) - set(written):
+        stale.unlink()
+    for path, text in written.items():
+        path.write_text(text)
+    return sorted(written)

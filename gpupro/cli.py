@@ -1,4 +1,4 @@
-"""The ``gpupro`` command: ``run`` an experiment config, ``fit`` parameters, ``list`` techniques.
+"""The ``gpupro`` command: ``run`` an experiment config, ``fit`` parameters, ``list`` techniques, write ``docs``.
 
 Errors in configs, scene files and images are reported as one line naming the problem (exit code 2),
 never as a Python traceback.
@@ -11,7 +11,10 @@ import sys
 
 
 def _parser() -> argparse.ArgumentParser:
+    from gpupro import __version__
+
     parser = argparse.ArgumentParser(prog="gpupro", description="A JAX laboratory for real-time rendering techniques.")
+    parser.add_argument("--version", action="version", version=f"gpupro {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
     run = commands.add_parser("run", help="render an experiment config: EXR, PNG preview and report.json")
     fit = commands.add_parser("fit", help="fit parameters of a config to a target image")
@@ -20,8 +23,57 @@ def _parser() -> argparse.ArgumentParser:
         sub.add_argument("--out", default="out", help="output folder (default: out)")
         sub.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                          help="override a config key, e.g. --set lights.count=64 (repeatable)")
-    commands.add_parser("list", help="print the technique catalogue")
+    run.add_argument("--devices", default=None, metavar="all|N",
+                     help="render a camera path as one batch sharded over all (or N) devices")
+    listing = commands.add_parser("list", help="print the technique catalogue, one technique's page, or a reference table")
+    listing.add_argument("technique", nargs="?", help="a technique id: print its reference page")
+    what = listing.add_mutually_exclusive_group()
+    for flag, text in (("--scenes", "procedural scene names"), ("--passes", "pass names (the techniques)"),
+                       ("--buffers", "every buffer with its producers and channels"), ("--config", "every config key")):
+        what.add_argument(flag, action="store_true", help=f"print {text}")
+    docs = commands.add_parser("docs", help="write docs/reference.md and docs/techniques/<id>.md from the registry")
+    docs.add_argument("folder", nargs="?", default="docs", help="output folder (default: docs)")
     return parser
+
+
+def _list(args) -> None:
+    from gpupro import catalogue
+    from gpupro.technique import registered
+
+    if args.technique:
+        if args.technique not in registered():
+            raise ValueError(f"unknown technique {args.technique!r} (known: {', '.join(registered())})")
+        print(catalogue.reference_page(args.technique), end="")
+    elif args.scenes:
+        print(catalogue.scenes_table())
+    elif args.buffers:
+        print(catalogue.buffers_table())
+    elif args.config:
+        print(catalogue.config_reference())
+    else:
+        print(catalogue.format_catalogue())
+
+
+def _run(args) -> None:
+    from gpupro.runner import run_experiment
+
+    # sys.stderr as it is now: the functions' defaults were bound when they were imported
+    report = run_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr,
+                            devices=args.devices)
+    ms = report["frame_ms"]
+    devices = f" x{report['devices']}" if report["devices"] > 1 else ""
+    print(f"{report['name']}: {report['triangles']} triangles, {report['lights']} lights, {report['resolution']} "
+          f"on {report['device']['device_kind']}{devices}: compile {report['compile_s']:.2f} s, "
+          f"frame {ms['median']:.1f} ms (median of {report['timed_runs']} runs)")
+    print(f"wrote {', '.join(report['outputs'])} and report.json in {args.out}")
+
+
+def _fit(args) -> None:
+    from gpupro.fit import fit_experiment
+
+    result = fit_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr)
+    print(f"{result['name']}: loss {result['loss'][0]:.3g} -> {result['loss'][-1]:.3g} in {result['steps']} steps")
+    print(f"wrote {', '.join(result['outputs'])} in {args.out}")
 
 
 def main(argv=None) -> int:
@@ -29,26 +81,16 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         if args.command == "list":
-            from gpupro.catalogue import format_catalogue
+            _list(args)
+        elif args.command == "docs":
+            from gpupro.catalogue import write_docs
 
-            print(format_catalogue())
+            print(f"wrote {len(write_docs(args.folder))} files under {args.folder}")
         elif args.command == "run":
-            from gpupro.runner import run_experiment
-
-            # sys.stderr as it is now: the functions' defaults were bound when they were imported
-            report = run_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr)
-            ms = report["frame_ms"]
-            print(f"{report['name']}: {report['triangles']} triangles, {report['lights']} lights, "
-                  f"{report['resolution'][0]}x{report['resolution'][1]} on {report['device']['device_kind']}: "
-                  f"compile {report['compile_s']:.2f} s, frame {ms['median']:.1f} ms (median of {report['timed_runs']} runs)")
-            print(f"wrote {', '.join(report['outputs'])} and report.json in {args.out}")
+            _run(args)
         else:
-            from gpupro.fit import fit_experiment
-
-            result = fit_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr)
-            print(f"{result['name']}: loss {result['loss'][0]:.3g} -> {result['loss'][-1]:.3g} in {result['steps']} steps")
-            print(f"wrote {', '.join(result['outputs'])} in {args.out}")
-    except (ValueError, FileNotFoundError, OSError) as error:
+            _fit(args)
+    except (ValueError, FileNotFoundError, OSError, RuntimeError) as error:
         print(f"gpupro {args.command}: error: {error}", file=sys.stderr)
         return 2
     return 0

@@ -3,10 +3,20 @@
 A config names the scene, the camera (or a camera path), the lights, the pipeline and the outputs.
 Every table accepts only the keys listed in :data:`SCHEMA`; an unknown key, a wrong type or an
 impossible value raises :class:`ConfigError` with the file and the dotted key, e.g.
-``default.toml: camera.resolution: expected a list of 2 positive integers, got [0, 64]``.
+``default.toml: camera.near: expected a finite number > 0.0, got -1``. Numbers become float32, so
+"finite" means finite in float32 (``|x| <= 3.4e38``; TOML's ``nan`` and ``inf`` are refused), and
+counts have upper bounds where a larger one would fail deep inside XLA instead of here.
 
-``--set key=value`` overrides are applied before checking; the value is read as a TOML value
-(``--set camera.resolution=[32,32]``, ``--set lights.count=64``) or, failing that, as a string.
+``camera.resolution`` is ``[height, width]`` or a string ``"WIDTHxHEIGHT"`` as people write sizes
+(``"320x180"`` or ``"320×180"``); the checked config always holds ``[height, width]``, and
+:func:`describe_size` writes a size back the way people write it.
+
+``--set key=value`` overrides are applied to the file's config in order; the value is read as a TOML
+value (``--set camera.resolution=[32,32]``, ``--set lights.count=64``) or, failing that, as a string.
+An error that an override brings in names it too: ``exp.toml: --set camera.near=-1: camera.near: ...``.
+The later source wins for the scene: ``--set scene.file=...`` replaces the file's ``scene.name``
+(and its procedural ``scene.options``), ``--set scene.name=...`` its ``scene.file``. A file path
+given by ``--set`` is relative to the working directory, one in the file to the file's folder.
 """
 
 from __future__ import annotations
@@ -15,6 +25,7 @@ import copy
 import dataclasses
 import math
 import pathlib
+import re
 import tomllib
 from typing import Any
 
@@ -23,11 +34,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.pipeline.graph import Pipeline
-from gpupro.pipeline.passes import PASSES
+from gpupro.pipeline.passes import make_pass
+from gpupro.technique import OptionError, registered
 from gpupro.scene import lights as lights_module
-from gpupro.scene.camera import PROJECTIONS, make_camera
+from gpupro.scene.camera import PROJECTIONS, Camera, make_camera
 from gpupro.scene.light_generators import along_path, uniform_in_box
-from gpupro.scene.loaders import load_mesh
+from gpupro.scene.loaders import load_scene
 from gpupro.scene.procedural import SCENES, by_name
 from gpupro.scene.scene import Scene
 
@@ -36,32 +48,92 @@ class ConfigError(ValueError):
     """A config that cannot be used; the message names the file and the key."""
 
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+MAX_RESOLUTION = 16384
+"""Largest image side: the largest render target of D3D12 and of most Vulkan GPUs."""
+
+MAX_FRAMES = 100_000
+"""Most frames a config may ask for: :func:`camera_path` makes every frame's camera up front."""
+
+MAX_LIGHTS = 1 << 24
+"""Most generated lights: generators build them on the host, and XLA aborts the whole process
+(no Python error) on light lists far larger than this."""
+
+MAX_SEED = 2**32 - 1
+"""Largest ``lights.seed``: ``jax.random.PRNGKey`` keeps only the low 32 bits (without 64-bit mode),
+so a larger seed would silently repeat a smaller one's lights."""
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _is_real(x) -> bool:
+    """A number that float32 holds finitely (NaN, inf and |x| > 3.4e38 are not); never raises,
+    unlike ``math.isfinite`` on integers too large for a float."""
+    return _is_number(x) and abs(x) <= FLOAT32_MAX
+
+
+def _float32_note(v) -> str:
+    """Why finite-looking numbers in ``v`` (a number or nested lists) were refused, if that is why."""
+    values = v if isinstance(v, list) else [v]
+    flat = [y for x in values for y in (x if isinstance(x, list) else [x])]
+    return f" (numbers become float32: |x| <= {FLOAT32_MAX:.4g})" if any(
+        _is_number(x) and FLOAT32_MAX < abs(x) < math.inf for x in flat) else ""
+
+
 def _vector(n):
     def check(v):
-        ok = isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
-        return ok, f"a list of {n} finite numbers"
+        ok = isinstance(v, list) and len(v) == n and all(_is_real(x) for x in v)
+        return ok, f"a list of {n} finite numbers" + _float32_note(v)
     return check
 
 
 def _number(lo=-math.inf, hi=math.inf, *, strict_lo=False):
     def check(v):
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and (v > lo if strict_lo else v >= lo) and v <= hi
+        # a strict bound holds for the float32 value: near = 1e-46 would become 0
+        ok = _is_real(v) and (float(np.float32(v)) > lo if strict_lo else v >= lo) and v <= hi
         bound = f"> {lo}" if strict_lo else (f">= {lo}" if lo > -math.inf else "")
-        return ok, f"a finite number {bound}".rstrip() + (f" and <= {hi}" if hi < math.inf else "")
+        return ok, f"a finite number {bound}".rstrip() + (f" and <= {hi}" if hi < math.inf else "") + _float32_note(v)
     return check
 
 
-def _integer(lo=0):
-    return lambda v: (isinstance(v, int) and not isinstance(v, bool) and v >= lo, f"an integer >= {lo}")
+def _integer(lo=0, hi=None, why=""):
+    def check(v):
+        if not (isinstance(v, int) and not isinstance(v, bool)):
+            return False, f"an integer >= {lo}"
+        if hi is not None and v > hi:
+            return False, f"an integer <= {hi:_} ({why})"
+        return v >= lo, f"an integer >= {lo}"
+    return check
 
 
 def _choice(*options):
     return lambda v: (v in options, f"one of {list(options)}")
 
 
+_SIZE = re.compile(r"([0-9]+)\s*[x×]\s*([0-9]+)")
+
+
+def _parse_size(text: str) -> list[int] | None:
+    """``"WIDTHxHEIGHT"`` (``x`` or ``×``) → ``[height, width]``; None when ``text`` is not written so."""
+    match = _SIZE.fullmatch(text.strip())
+    return [int(match[2]), int(match[1])] if match else None
+
+
 def _resolution(v):
-    ok = isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool) and x > 0 for x in v)
-    return ok, "a list of 2 positive integers [height, width]"
+    size = _parse_size(v) if isinstance(v, str) else v
+    ok = isinstance(size, list) and len(size) == 2 and all(
+        isinstance(x, int) and not isinstance(x, bool) and 1 <= x <= MAX_RESOLUTION for x in size)
+    return ok, f'[height, width] (integers from 1 to {MAX_RESOLUTION}) or "WIDTHxHEIGHT" such as "320x180"'
+
+
+def describe_size(size) -> str:
+    """A ``(height, width)`` size in pixels (as in ``camera.resolution`` and ``Camera.resolution``)
+    written as people write sizes, width first: ``(180, 320)`` → ``"320x180"``."""
+    height, width = size
+    return f"{width}x{height}"
 
 
 def _string(v):
@@ -87,32 +159,46 @@ def _strings(v):
 
 def _points(v):
     ok = isinstance(v, list) and len(v) >= 2 and all(_vector(3)(p)[0] for p in v)
-    return ok, "a list of at least 2 points [x, y, z]"
+    return ok, "a list of at least 2 points [x, y, z] of finite numbers" + _float32_note(v)
 
 
 def _light_list(v):
     return isinstance(v, list) and all(isinstance(x, dict) for x in v), "a list of tables"
 
 
-LIGHT_KEYS = {"position": _vector(3), "direction": _vector(3), "color": _vector(3), "intensity": _number(0.0),
-              "range": _number(0.0, strict_lo=True), "inner_angle_degrees": _number(0.0, 90.0),
-              "outer_angle_degrees": _number(0.0, 90.0)}
+_LIGHT = {"position": _vector(3), "direction": _vector(3), "color": _vector(3), "intensity": _number(0.0),
+          "range": _number(0.0, strict_lo=True), "inner_angle_degrees": _number(0.0, 90.0),
+          "outer_angle_degrees": _number(0.0, 90.0)}
+LIGHT_KEYS = {
+    "point": {k: _LIGHT[k] for k in ("position", "color", "intensity", "range")},
+    "spot": _LIGHT,
+    "directional": {k: _LIGHT[k] for k in ("direction", "color", "intensity")},
+}
+"""Keys of ``[[lights.point]]``, ``[[lights.spot]]`` and ``[[lights.directional]]`` entries: only those
+the kind uses, so that e.g. a point light's ``direction`` is refused rather than ignored."""
+
+GENERATOR_KEYS = {"uniform_in_box": {"count", "range", "intensity", "seed", "white", "box_lo", "box_hi"},
+                  "along_path": {"count", "range", "intensity", "seed", "white", "path", "offset"}}
+"""The ``[lights]`` keys each generator reads; "scene" and "none" read none of them, so
+``--set lights.count=64`` on a config whose lights are the scene's is refused, not ignored."""
 
 SCHEMA: dict[str, Any] = {
     "name": _file_stem,
     "description": _string,
-    "frames": _integer(1),
+    "frames": _integer(1, MAX_FRAMES, "each frame's camera is made up front"),
     "repeats": _integer(1),
     "scene": {"name": _choice(*SCENES), "file": _string, "options": _table},
     "camera": {"eye": _vector(3), "target": _vector(3), "up": _vector(3), "fov_y_degrees": _number(0.0, 179.0, strict_lo=True),
                "near": _number(0.0, strict_lo=True), "far": _number(0.0, strict_lo=True), "resolution": _resolution,
                "projection": _choice(*PROJECTIONS), "ortho_height": _number(0.0, strict_lo=True),
                "path": {"eye_end": _vector(3), "target_end": _vector(3)}},
-    "lights": {"generator": _choice("scene", "none", "uniform_in_box", "along_path"), "count": _integer(0),
-               "range": _number(0.0, strict_lo=True), "intensity": _number(0.0), "seed": _integer(0), "white": _boolean,
+    "lights": {"generator": _choice("scene", "none", "uniform_in_box", "along_path"),
+               "count": _integer(0, MAX_LIGHTS, "larger light lists exhaust memory"),
+               "range": _number(0.0, strict_lo=True), "intensity": _number(0.0),
+               "seed": _integer(0, MAX_SEED, "jax.random.PRNGKey keeps 32 bits"), "white": _boolean,
                "keep_scene_lights": _boolean, "box_lo": _vector(3), "box_hi": _vector(3), "path": _points,
                "offset": _number(0.0), "point": _light_list, "spot": _light_list, "directional": _light_list},
-    "pipeline": {"passes": _strings, "options": _table, "params": _table, "outputs": _strings},
+    "pipeline": {"passes": _strings, "options": _table, "params": _table, "inputs": _table},
     "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean, "preview": _string},
     "fit": _table,
 }
@@ -165,19 +251,74 @@ def load_config(path: str | pathlib.Path, overrides: tuple[str, ...] | list[str]
     return check_config(config, source=str(path), overrides=overrides, base_dir=path.parent)
 
 
-def check_config(config: dict, *, source: str = "config", overrides=(), base_dir=".") -> dict:
-    """Applies ``--set`` overrides to a config dict and checks it against :data:`SCHEMA`."""
+def _apply_override(config: dict, text: str) -> dict:
+    """A copy of ``config`` with the ``--set`` override ``text`` applied. Setting ``scene.file``
+    drops ``scene.name`` and ``scene.options`` (the procedural scene it replaces), setting
+    ``scene.name`` drops ``scene.file``: the later source of the scene wins."""
+    keys, value = parse_override(text)
     config = copy.deepcopy(config)
+    table = config
+    for k in keys[:-1]:
+        table = table.setdefault(k, {})
+        if not isinstance(table, dict):
+            raise ConfigError(f"--set {text!r}: '{k}' is not a table")
+    table[keys[-1]] = value
+    if keys == ["scene", "file"]:
+        table.pop("name", None)
+        table.pop("options", None)
+    elif keys == ["scene", "name"]:
+        table.pop("file", None)
+    return config
+
+
+def _resolve_scene_file(config: dict, base_dir) -> dict:
+    """A copy of ``config`` with its ``scene.file`` (when it is a path) taken relative to ``base_dir``."""
+    config = copy.deepcopy(config)
+    scene = config.get("scene")
+    if isinstance(scene, dict) and isinstance(scene.get("file"), str) and scene["file"]:
+        scene["file"] = str(pathlib.Path(base_dir) / scene["file"])
+    return config
+
+
+def _error(config: dict, source: str) -> str | None:
+    """The message :func:`check_config` refuses ``config`` with, or None when it passes."""
+    try:
+        check_config(config, source=source)
+    except ConfigError as error:
+        return str(error)
+    return None
+
+
+def _check_overridden(config: dict, overrides, source: str, base_dir) -> dict:
+    """:func:`check_config` with overrides: the overridden config is checked, and an error names the
+    first override after which the config fails that same way (none when the file alone does)."""
+    states = [_resolve_scene_file(config, base_dir)]
     for text in overrides:
-        keys, value = parse_override(text)
-        table = config
-        for k in keys[:-1]:
-            table = table.setdefault(k, {})
-            if not isinstance(table, dict):
-                raise ConfigError(f"--set {text!r}: '{k}' is not a table")
-        table[keys[-1]] = value
+        states.append(_apply_override(states[-1], text))
+    try:
+        return check_config(states[-1], source=source)
+    except ConfigError as error:
+        message = str(error)
+    if _error(states[0], source) != message:
+        text = next(t for t, state in zip(overrides, states[1:]) if _error(state, source) == message)
+        message = message.replace(f"{source}: ", f"{source}: --set {text}: ", 1)
+    raise ConfigError(message)
+
+
+def check_config(config: dict, *, source: str = "config", overrides=(), base_dir=".") -> dict:
+    """Applies ``--set`` overrides to a config dict and checks it against :data:`SCHEMA`; returns a
+    checked copy (``camera.resolution`` as ``[height, width]``, ``_source`` set to ``source``).
+
+    Errors name ``source``; one that an override brings in names that override too. ``scene.file``
+    in ``config`` is relative to ``base_dir``, one set by an override to the working directory.
+    """
+    if overrides:
+        return _check_overridden(config, overrides, source, base_dir)
+    config = copy.deepcopy(config)
     config.setdefault("name", "experiment")
     _check(config, SCHEMA, "", source)
+    if isinstance(config.get("camera", {}).get("resolution"), str):
+        config["camera"]["resolution"] = _parse_size(config["camera"]["resolution"])
     scene = config.get("scene", {})
     if ("name" in scene) == ("file" in scene):
         raise ConfigError(f"{source}: scene: give exactly one of scene.name (one of {sorted(SCENES)}) or scene.file")
@@ -192,9 +333,9 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
         raise ConfigError(f"{source}: camera.path needs frames >= 2, got frames = {config.get('frames', 1)}")
     passes = config.get("pipeline", {}).get("passes", DEFAULT_PASSES)
     for name in passes:
-        if name not in PASSES:
-            raise ConfigError(f"{source}: pipeline.passes: unknown pass '{name}' (known: {', '.join(PASSES)})")
-    for section in ("options", "params"):
+        if name not in registered():
+            raise ConfigError(f"{source}: pipeline.passes: unknown pass '{name}' (known: {', '.join(registered())})")
+    for section in ("options", "params", "inputs"):
         for name, value in config.get("pipeline", {}).get(section, {}).items():
             if name not in passes:
                 raise ConfigError(f"{source}: pipeline.{section}.{name}: no such pass in pipeline.passes {passes}")
@@ -202,9 +343,20 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
                 raise ConfigError(f"{source}: pipeline.{section}.{name}: expected a table")
     for kind in ("point", "spot", "directional"):
         for i, light in enumerate(config.get("lights", {}).get(kind, [])):
-            _check(light, LIGHT_KEYS, f"lights.{kind}[{i}].", source)
+            _check(light, LIGHT_KEYS[kind], f"lights.{kind}[{i}].", source)
+    _check_generator_keys(config.get("lights", {}), source)
     config["_source"] = source
     return config
+
+
+def _check_generator_keys(section: dict, source: str):
+    """Refuses ``[lights]`` keys that the chosen generator would ignore (see :data:`GENERATOR_KEYS`)."""
+    generator = section.get("generator", "scene")
+    for key in section:
+        users = [name for name, keys in GENERATOR_KEYS.items() if key in keys]
+        if users and generator not in users:
+            raise ConfigError(f"{source}: lights.{key}: not used by lights.generator '{generator}' "
+                              f"(only by {' and '.join(users)})")
 
 
 def _explicit_lights(section: dict, source: str):
@@ -230,67 +382,81 @@ def _explicit_lights(section: dict, source: str):
     return groups
 
 
+def _generated_lights(section: dict, generator: str, lo, hi):
+    """The lights of ``generator`` ("uniform_in_box" in the box ``lo`` [3] to ``hi`` [3], or "along_path")."""
+    key = jax.random.PRNGKey(section.get("seed", 0))
+    common = dict(light_range=section["range"], intensity=section.get("intensity", 1.0), white=section.get("white", False))
+    if generator == "uniform_in_box":
+        return uniform_in_box(key, section["count"], lo, hi, **common)
+    return along_path(key, section["count"], section["path"], offset=section.get("offset", 0.0), **common)
+
+
 def build_lights(config: dict, scene: Scene):
-    """The scene's lights as the config's ``[lights]`` table asks (generator, explicit lights, or both)."""
+    """The scene's lights as the config's ``[lights]`` table asks (generator, explicit lights, or both).
+
+    ``generator = "scene"`` (the default) keeps the scene's own lights. The result may hold no lights
+    (a scene without lights, ``generator = "none"``, ``count = 0``): that is not an error here, the
+    caller decides whether to warn."""
     section = config.get("lights", {})
     generator = section.get("generator", "scene")
     groups = [scene.lights] if generator == "scene" or section.get("keep_scene_lights", False) else []
     groups += _explicit_lights(section, config["_source"])
     if generator in ("uniform_in_box", "along_path"):
         source = config["_source"]
-        for key in ("count", "range"):
+        for key in ("count", "range", "path") if generator == "along_path" else ("count", "range"):
             if key not in section:
                 raise ConfigError(f"{source}: lights.{key} is required by generator '{generator}'")
-        key = jax.random.PRNGKey(section.get("seed", 0))
-        common = dict(light_range=section["range"], intensity=section.get("intensity", 1.0), white=section.get("white", False))
-        if generator == "uniform_in_box":
-            lo, hi = scene.bounds()
-            lo, hi = section.get("box_lo", lo), section.get("box_hi", hi)
-            if np.any(np.asarray(lo) > np.asarray(hi)):
-                raise ConfigError(f"{source}: lights.box_lo must not exceed lights.box_hi")
-            groups.append(uniform_in_box(key, section["count"], lo, hi, **common))
-        else:
-            if "path" not in section:
-                raise ConfigError(f"{source}: lights.path is required by generator 'along_path'")
-            groups.append(along_path(key, section["count"], section["path"], offset=section.get("offset", 0.0), **common))
+        lo, hi = scene.bounds()
+        lo, hi = section.get("box_lo", lo), section.get("box_hi", hi)
+        if np.any(np.asarray(lo) > np.asarray(hi)):
+            raise ConfigError(f"{source}: lights.box_lo must not exceed lights.box_hi")
+        try:
+            groups.append(_generated_lights(section, generator, lo, hi))
+        except ValueError as error:  # e.g. a path of zero length, or offsets that overflow float32
+            raise ConfigError(f"{source}: lights (generator '{generator}'): {error}") from None
     groups = [g for g in groups if g.count]
     return lights_module.concatenate_lights(groups) if groups else lights_module.no_lights()
 
 
+def _camera_arguments(camera: Camera) -> dict:
+    """The :func:`make_camera` arguments that make ``camera`` again (host-side numbers)."""
+    return dict(eye=np.asarray(camera.eye), target=np.asarray(camera.target), up=np.asarray(camera.up),
+                fov_y_degrees=float(np.degrees(camera.fov_y)), near=float(camera.near), far=float(camera.far),
+                resolution=camera.resolution, projection=camera.projection, ortho_height=float(camera.ortho_height))
+
+
 def build_scene(config: dict) -> Scene:
-    """Scene (procedural or from a file), camera overrides and lights of a checked config."""
+    """Scene (procedural, or from ``scene.file`` by :func:`gpupro.scene.loaders.load_scene` with its
+    default camera and lights), camera overrides and lights of a checked config."""
     section = config["scene"]
+    source = config["_source"]
     camera_cfg = {k: v for k, v in config.get("camera", {}).items() if k != "path"}
     resolution = tuple(camera_cfg.pop("resolution", (64, 64)))
     if "name" in section:
         try:
             scene = by_name(section["name"], resolution=resolution, **section.get("options", {}))
-        except (TypeError, ValueError) as error:
-            raise ConfigError(f"{config['_source']}: scene.options: {error}") from None
+        except (TypeError, ValueError, OverflowError, MemoryError) as error:  # memory: e.g. segments = 10**12
+            raise ConfigError(f"{source}: scene.options: {str(error) or type(error).__name__}") from None
     else:
         if section.get("options"):
-            raise ConfigError(f"{config['_source']}: scene.options apply to procedural scenes only")
-        mesh, materials = load_mesh(section["file"])
-        lo, hi = np.asarray(mesh.positions).min(0), np.asarray(mesh.positions).max(0)
-        centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 or 1.0
-        default = make_camera(centre + np.array([0.0, 0.3, 1.0]) * 2.2 * radius, centre, near=0.01 * radius,
-                              far=10 * radius, resolution=resolution)
-        scene = Scene(mesh, materials, lights_module.no_lights(), default)
-    if camera_cfg:
-        base = scene.camera
-        merged = dict(eye=np.asarray(base.eye), target=np.asarray(base.target), up=np.asarray(base.up),
-                      fov_y_degrees=float(np.degrees(base.fov_y)), near=float(base.near), far=float(base.far),
-                      projection=base.projection, ortho_height=float(base.ortho_height))
-        merged.update(camera_cfg)
+            raise ConfigError(f"{source}: scene.options apply to procedural scenes only")
         try:
-            scene = scene.replace(camera=make_camera(resolution=resolution, **merged))
-        except ValueError as error:
-            raise ConfigError(f"{config['_source']}: camera: {error}") from None
+            scene = load_scene(section["file"], resolution=resolution)
+        except (OSError, ValueError) as error:
+            raise ConfigError(f"{source}: scene.file: {error}") from None
+    if camera_cfg:
+        try:
+            scene = scene.replace(camera=make_camera(**{**_camera_arguments(scene.camera), **camera_cfg}))
+        except ValueError as error:  # e.g. far = 3e38, whose float32 projection overflows
+            raise ConfigError(f"{source}: camera: {error}") from None
     return scene.replace(lights=build_lights(config, scene))
 
 
 def camera_path(config: dict, scene: Scene) -> list:
-    """The camera of each frame: the scene's camera, moved linearly to ``camera.path`` ends over the frames."""
+    """The camera of each frame: the scene's camera, moved linearly to ``camera.path`` ends over the frames.
+
+    Raises :class:`ConfigError` naming ``camera.path`` and the frame when a frame's camera cannot be
+    made (its eye on its target, its up along its view, a matrix that overflows float32)."""
     frames = config.get("frames", 1)
     path = config.get("camera", {}).get("path", {})
     camera = scene.camera
@@ -301,38 +467,35 @@ def camera_path(config: dict, scene: Scene) -> list:
         t = i / max(frames - 1, 1)
         cameras.append(dataclasses.replace(camera, eye=(1 - t) * camera.eye + t * eye_end,
                                            target=(1 - t) * camera.target + t * target_end))
+        if path:
+            try:  # make_camera only checks here: the frames keep the scene camera's exact values
+                make_camera(**_camera_arguments(cameras[-1]))
+            except ValueError as error:
+                raise ConfigError(f"{config['_source']}: camera.path: frame {i}: {error}") from None
     return cameras
 
 
 def build_pipeline(config: dict) -> tuple[Pipeline, dict]:
-    """The pipeline of a checked config and its params (defaults overridden by ``pipeline.params``)."""
+    """The pipeline of a checked config and its params: each pass made from its technique's specification,
+    with ``pipeline.options.<pass>`` and ``pipeline.params.<pass>`` checked there (errors name the key)."""
     section = config.get("pipeline", {})
     source = config["_source"]
     passes = []
     for name in section.get("passes", DEFAULT_PASSES):
+        tables = {table: section.get(table, {}).get(name, {}) for table in ("options", "params", "inputs")}
+        for table, value in tables.items():
+            if not isinstance(value, dict):
+                raise ConfigError(f"{source}: pipeline.{table}.{name}: expected a table")
         try:
-            passes.append(PASSES[name](name=name, **section.get("options", {}).get(name, {})))
-        except (TypeError, ValueError) as error:
-            raise ConfigError(f"{source}: pipeline.options.{name}: {error}") from None
+            passes.append(make_pass(name, params=tables["params"], inputs=tables["inputs"], **tables["options"]))
+        except OptionError as error:
+            table = next((t for t in ("inputs", "params") if error.key in tables[t]), "options")
+            if table == "options" and any(error.key == p.name for p in registered()[name].params):
+                table = "params"
+            raise ConfigError(f"{source}: pipeline.{table}.{name}.{error.key}: {error.message}") from None
     outputs = config.get("outputs", {}).get("buffers", ["hdr", "ldr"])
     try:
         pipeline = Pipeline(passes, outputs=outputs)
     except ValueError as error:
         raise ConfigError(f"{source}: pipeline: {error}") from None
-    params = pipeline.init_params()
-    for name, values in section.get("params", {}).items():
-        for key, value in values.items():
-            if name not in params or key not in params[name]:
-                known = sorted(params.get(name, {}))
-                raise ConfigError(f"{source}: pipeline.params.{name}.{key}: unknown parameter (known: {known})")
-            default = params[name][key]
-            try:
-                array = jnp.asarray(value, jnp.float32)
-            except (TypeError, ValueError):
-                raise ConfigError(f"{source}: pipeline.params.{name}.{key}: expected numbers, got {value!r}") from None
-            if not bool(jnp.all(jnp.isfinite(array))):
-                raise ConfigError(f"{source}: pipeline.params.{name}.{key}: expected finite numbers, got {value!r}")
-            if array.shape != default.shape:
-                raise ConfigError(f"{source}: pipeline.params.{name}.{key}: expected shape {list(default.shape)}, got {list(array.shape)}")
-            params[name][key] = array
-    return pipeline, params
+    return pipeline, pipeline.init_params()

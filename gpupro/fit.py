@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import json
 import math
 import pathlib
@@ -30,10 +31,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from PIL import Image, ImageDraw, ImageFont
 
 from gpupro.config import ConfigError, build_pipeline, build_scene, load_config
-from gpupro.io.exr import read_exr
-from gpupro.io.png import write_png
+from gpupro.io.exr import read_exr, write_exr
+from gpupro.io.png import preview_image, to_uint8, write_png
+from gpupro.pipeline.batch import batched_frame, select_devices, shard_frames
+from gpupro.pipeline.capacity import grown, overflows
 from gpupro.pipeline.graph import Pipeline
 
 LOSSES = ("l2", "l1", "relative_l2")
@@ -118,12 +122,22 @@ def image_loss(rendered: jax.Array, target: jax.Array, kind: str = "l2") -> jax.
 
 
 class FitResult(typing.NamedTuple):
-    """Fitted ``values`` (one array per parameter), the ``loss`` per step, and the final params and scene."""
+    """Fitted ``values`` (one array per parameter), the ``loss`` per step, the final params and scene, and
+    the ``pipeline`` used last (its capacities grown if any overflowed)."""
 
     values: list
     loss: list
     params: typing.Any
     scene: typing.Any
+    pipeline: typing.Any = None
+
+
+def _renderer(pipeline: Pipeline, buffer: str, views):
+    """``render(params, scene) -> buffers``: one frame, or the batch of ``views`` (stacked cameras)."""
+    if views is None:
+        return pipeline.frame((buffer,))
+    batch = batched_frame(pipeline, (buffer,))
+    return lambda params, scene: batch(params, scene, views)
 
 
 def fit(
@@ -138,48 +152,81 @@ def fit(
     optimizer: optax.GradientTransformation | None = None,
     steps: int = 100,
     progress=None,
+    cameras=None,
+    devices=None,
+    quiet: bool = False,
 ) -> FitResult:
     """Fits ``parameters`` so that ``buffer`` of the frame matches ``target`` ([H, W, C]).
 
     ``optimizer`` defaults to ``optax.adam(0.05)``. ``progress`` (a file) gets a line every 10 steps.
+    ``cameras``: a list of N cameras to fit several views at once, ``target`` then [N, H, W, C] and the
+    loss the mean over views; the views are rendered as one batch sharded over ``devices`` (``None``:
+    the default device, ``"all"`` or a count; see :mod:`gpupro.pipeline.batch`). A capacity that
+    overflows during a step is grown (a line on stderr unless ``quiet``) and the step taken again.
     """
     if loss not in LOSSES:
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
     optimizer = optimizer or optax.adam(0.05)
-    frame = pipeline.frame((buffer,))
     target = jnp.asarray(target, jnp.float32)
     values = _gather(parameters, params, scene)
-
-    def objective(values):
-        p, s = _scatter(parameters, values, params, scene)
-        rendered = frame(p, s)[buffer]
-        if rendered.shape != target.shape:
-            raise ValueError(f"fit target has shape {list(target.shape)}, buffer {buffer!r} has {list(rendered.shape)}")
-        return image_loss(rendered, target, loss)
-
+    views = None
+    if cameras is not None:
+        if target.ndim != 4 or target.shape[0] != len(cameras):
+            raise ValueError(f"fit: with {len(cameras)} cameras the target must be [N, H, W, C] with N = {len(cameras)}, "
+                             f"got shape {list(target.shape)}")
+        params, scene, views, _ = shard_frames(params, scene, cameras, select_devices(devices))
     lower = [jnp.float32(p.lower) for p in parameters]
     upper = [jnp.float32(p.upper) for p in parameters]
 
-    @jax.jit
-    def step(values, state):
-        value, grads = jax.value_and_grad(objective)(values)
-        updates, state = optimizer.update(grads, state, values)
-        values = optax.apply_updates(values, updates)
-        return [jnp.clip(v, lo, hi) for v, lo, hi in zip(values, lower, upper)], state, value
+    def make_step(pipeline):
+        render = _renderer(pipeline, buffer, views)
+        lossy = any(c.lossy for p in pipeline.passes if p.technique for c in p.technique.capacities)
 
+        def objective(values):
+            p, s = _scatter(parameters, values, params, scene)
+            out = render(p, s)
+            rendered = out[buffer] if views is None else out[buffer][:len(target)]  # not the padding views
+            if rendered.shape != target.shape:
+                raise ValueError(f"fit target has shape {list(target.shape)}, buffer {buffer!r} has {list(rendered.shape)}")
+            # Counters leave the step only where a capacity can overflow (reading them costs a transfer).
+            return image_loss(rendered, target, loss), out["counters"] if lossy else {}
+
+        # params and scene are closed over, as constants XLA may fold (the scene's geometry is fixed).
+        @jax.jit
+        def step(values, state):
+            (value, counters), grads = jax.value_and_grad(objective, has_aux=True)(values)
+            updates, state = optimizer.update(grads, state, values)
+            values = optax.apply_updates(values, updates)
+            return [jnp.clip(v, lo, hi) for v, lo, hi in zip(values, lower, upper)], state, value, counters
+
+        return step
+
+    step = make_step(pipeline)
     state = optimizer.init(values)
     history = []
-    for i in range(steps):
-        values, state, value = step(values, state)
+    i = 0
+    while i < steps:
+        new_values, new_state, value, counters = step(values, state)
+        found = overflows(pipeline, counters)
+        if found:
+            bigger = grown(pipeline, counters, found)
+            if not quiet:
+                for name, capacity, count in found:
+                    print(f"fit: {name}: {capacity.counter} = {count}; growing {capacity.option} to "
+                          f"{bigger[name].options[capacity.option]} and taking step {i + 1} again", file=sys.stderr, flush=True)
+            pipeline, step = bigger, make_step(bigger)
+            continue
+        values, state = new_values, new_state
         history.append(float(value))
         if not math.isfinite(history[-1]):
             raise FloatingPointError(f"fit: loss became {history[-1]} at step {i}")
         if progress is not None and (i % 10 == 0 or i == steps - 1):
             print(f"step {i + 1}/{steps}: loss {history[-1]:.4g}", file=progress, flush=True)
+        i += 1
     final_params, final_scene = _scatter(parameters, values, params, scene)
-    return FitResult(values, history, final_params, final_scene)
+    return FitResult(values, history, final_params, final_scene, pipeline)
 
 
 def check_grads(pipeline: Pipeline, params, scene, *, paths: list[str] | None = None, output: str = "hdr",
@@ -216,22 +263,44 @@ def check_grads(pipeline: Pipeline, params, scene, *, paths: list[str] | None = 
 
 
 def plot_curve(values: list[float], *, size=(240, 320)) -> np.ndarray:
-    """A log-scale line plot of ``values`` as a uint8 RGB image [H, W, 3] (white background, axes)."""
+    """A line plot of ``values`` (one per step, finite) as a uint8 RGB image [H, W, 3], ``size`` = (H, W).
+
+    White background; a log-scale y axis spanning whole decades with labels ``1e<k>``, an x axis
+    ``step`` with a few integer ticks, the curve in red (200, 30, 30) drawn last, and a title with the
+    first and last value. Values <= 0 are drawn at the smallest positive value. Raises ValueError for
+    no values or non-finite ones.
+    """
+    v = np.asarray(values, np.float64)
+    if v.size == 0 or not np.all(np.isfinite(v)):
+        raise ValueError(f"plot_curve: expected a non-empty list of finite values, got {v.size} values")
+    positive = v[v > 0]
+    y = np.log10(np.maximum(v, positive.min() if positive.size else 1.0))
+    low = math.floor(y.min())
+    high = max(math.ceil(y.max()), low + 1)
     h, w = size
-    image = np.full((h, w, 3), 255, np.uint8)
-    margin = 20
-    image[h - margin, margin:w - margin] = 0
-    image[margin:h - margin, margin] = 0
-    y = np.log10(np.maximum(np.asarray(values, np.float64), 1e-30))
-    lo, hi = y.min(), y.max()
-    span = hi - lo if hi > lo else 1.0
-    xs = margin + (w - 2 * margin) * np.arange(len(y)) / max(len(y) - 1, 1)
-    ys = (h - margin) - (h - 2 * margin) * (y - lo) / span
-    for (x0, y0), (x1, y1) in zip(zip(xs[:-1], ys[:-1]), zip(xs[1:], ys[1:])):
-        n = int(max(abs(x1 - x0), abs(y1 - y0))) + 2
-        for t in np.linspace(0.0, 1.0, n):
-            image[int(round(y0 + t * (y1 - y0))), int(round(x0 + t * (x1 - x0)))] = (200, 30, 30)
-    return image
+    left, top, right, bottom = _PLOT_LEFT, _PLOT_TOP, w - _PLOT_RIGHT, h - _PLOT_BOTTOM
+    image = Image.new("RGB", (w, h), "white")
+    draw = ImageDraw.Draw(image)
+
+    def row(log_value):
+        return round(bottom - (bottom - top) * (log_value - low) / (high - low))
+
+    def column(step):
+        return round(left + (right - left) * (step - 1) / max(v.size - 1, 1))
+
+    for k in range(low, high + 1, math.ceil((high - low) / 6)):  # at most 7 decade labels
+        draw.line([(left, row(k)), (right, row(k))], fill=_GRID)
+        draw.line([(left - 3, row(k)), (left, row(k))], fill="black")
+        _text(draw, left - 5, row(k), f"1e{k}", "rm")
+    for step in _step_ticks(v.size):
+        draw.line([(column(step), bottom), (column(step), bottom + 3)], fill="black")
+        _text(draw, column(step), bottom + 5, str(step), "mt")
+    _text(draw, (left + right) // 2, h - 3, "step", "mb")
+    _text(draw, left, 4, f"loss {v[0]:.3g} -> {v[-1]:.3g}")
+    draw.line([(left, top), (left, bottom), (right, bottom)], fill="black")
+    points = [(column(i + 1), row(value)) for i, value in enumerate(y)]
+    draw.line(points * 2 if len(points) == 1 else points, fill=_CURVE)  # one value: a one-pixel line
+    return np.asarray(image)
 
 
 def _parameters_from(config: dict) -> tuple[list[FitParameter], list]:
@@ -265,7 +334,9 @@ def _parameters_from(config: dict) -> tuple[list[FitParameter], list]:
 
 
 def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.stderr) -> dict:
-    """``gpupro fit``: fits the ``[fit]`` section of a config; writes loss.csv, loss.png, fitted.json.
+    """``gpupro fit``: fits the ``[fit]`` section of a config; writes loss.csv, loss.png, comparison.png
+    (target | before | after), comparison.exr (those buffers), error.png (|after − target|) and fitted.json
+    (with the loss and mean absolute error before and after fitting).
 
     The target is ``fit.target`` (an EXR file holding ``fit.buffer``) or, without it, a render of the
     config as written, from which each parameter starts at its ``init`` value instead (so a config can
@@ -310,12 +381,16 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     else:
         target = pipeline.frame((buffer,))(params, scene)[buffer]
     start = [t if init is None else jnp.broadcast_to(jnp.asarray(init, jnp.float32), t.shape) for t, init in zip(_gather(parameters, params, scene), inits)]
-    params, scene = _scatter(parameters, start, params, scene)
+    start_params, start_scene = _scatter(parameters, start, params, scene)
+    loss_kind = section.get("loss", "l2")
 
     begin = time.perf_counter()
-    result = fit(pipeline, params, scene, target, parameters, buffer=buffer, loss=section.get("loss", "l2"),
+    result = fit(pipeline, start_params, start_scene, target, parameters, buffer=buffer, loss=loss_kind,
                  optimizer=getattr(optax, optimizer_name)(rate), steps=steps, progress=progress)
     seconds = time.perf_counter() - begin
+    frame = pipeline.frame((buffer,))
+    before = frame(start_params, start_scene)[buffer]
+    after = frame(result.params, result.scene)[buffer]
 
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -324,10 +399,14 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         writer.writerow(["step", "loss"])
         writer.writerows(enumerate(result.loss, start=1))
     write_png(out / "loss.png", plot_curve(result.loss))
+    comparison = _write_comparison(out, buffer, {"target": target, "before": before, "after": after},
+                                   start_scene.camera)
     fitted = {p.path + ("" if p.indices is None else str(list(p.indices))): np.asarray(v).tolist()
               for p, v in zip(parameters, result.values)}
     summary = {"name": config["name"], "steps": len(result.loss), "seconds": seconds, "loss": result.loss,
-               "fitted": fitted, "outputs": ["loss.csv", "loss.png", "fitted.json"]}
+               "fitted": fitted, "error_before": _errors(before, target, loss_kind),
+               "error_after": _errors(after, target, loss_kind),
+               "outputs": ["loss.csv", "loss.png", *comparison, "fitted.json"]}
     if truth is not None:
         summary["truth"] = {k: np.asarray(t).tolist() for k, t in zip(fitted, truth)}
         summary["max_relative_error"] = {
@@ -336,3 +415,70 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         }
     (out / "fitted.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+_PLOT_LEFT, _PLOT_TOP, _PLOT_RIGHT, _PLOT_BOTTOM = 44, 20, 12, 32  # margins of plot_curve's axes, pixels
+_CURVE, _GRID = (200, 30, 30), (225, 225, 225)
+_LABEL_HEIGHT, _PANEL_GAP = 14, 4  # comparison.png: the strip above each panel, the gap between panels
+
+
+@functools.cache
+def _font() -> ImageFont.ImageFont:
+    # Pillow >= 10.1 has an outline default font too; before that, load_default is the bitmap one
+    return getattr(ImageFont, "load_default_imagefont", ImageFont.load_default)()
+
+
+def _text(draw: ImageDraw.ImageDraw, x: int, y: int, text: str, anchor: str = "lt") -> None:
+    """Draws ``text`` in black with Pillow's default bitmap font at ``(x, y)``; ``anchor`` is horizontal
+    l/m/r then vertical t/m/b as in Pillow, which applies anchors to outline fonts only."""
+    _, _, width, height = _font().getbbox(text)
+    dx = {"l": 0, "m": width // 2, "r": width}[anchor[0]]
+    dy = {"t": 0, "m": height // 2, "b": height}[anchor[1]]
+    draw.text((x - dx, y - dy), text, fill="black", font=_font())
+
+
+def _step_ticks(count: int) -> list[int]:
+    """Step 1 and the multiples of a 1-2-5 spacing up to ``count``: at most about 6 ticks."""
+    raw = (count - 1) / 5
+    spacing = 1
+    if raw > 1:
+        magnitude = 10 ** math.floor(math.log10(raw))
+        spacing = next(m * magnitude for m in (1, 2, 5, 10) if m * magnitude >= raw)
+    return sorted({1, *range(spacing, count + 1, spacing)})
+
+
+def _errors(rendered, target, loss: str) -> dict:
+    """fitted.json's ``error_before`` / ``error_after``: the fit loss and the mean absolute error per
+    pixel and channel (units of the buffer) between ``rendered`` and ``target``."""
+    return {"loss": float(image_loss(rendered, target, loss)),
+            "mean_absolute_error": float(jnp.mean(jnp.abs(rendered - target)))}
+
+
+def _side_by_side(panels: dict[str, np.ndarray]) -> np.ndarray:
+    """uint8 [H, W, 3] panels in a row, each under its name, on white: uint8 [14 + H, n W + 4 (n − 1), 3]."""
+    h, w = next(iter(panels.values())).shape[:2]
+    image = Image.new("RGB", (len(panels) * (w + _PANEL_GAP) - _PANEL_GAP, _LABEL_HEIGHT + h), "white")
+    draw = ImageDraw.Draw(image)
+    for i, (name, panel) in enumerate(panels.items()):
+        image.paste(Image.fromarray(panel), (i * (w + _PANEL_GAP), _LABEL_HEIGHT))
+        _text(draw, i * (w + _PANEL_GAP) + w // 2, 1, name, "mt")
+    return np.asarray(image)
+
+
+def _write_comparison(out: pathlib.Path, buffer: str, images: dict, camera) -> list[str]:
+    """Writes comparison.png (``images`` target | before | after, previews normalised like the target),
+    comparison.exr (the three buffers) and error.png (|after − target| summed over channels, scaled so
+    the largest |before − target| is white). Returns the file names."""
+    images = {k: np.asarray(v, np.float32) for k, v in images.items()}
+    depth_range = dict(near=float(camera.near), far=float(camera.far)) if camera.projection == "perspective" else {}
+    panels = {k: preview_image(buffer, v, normalise_from=images["target"], **depth_range) for k, v in images.items()}
+    write_png(out / "comparison.png", _side_by_side(panels))
+    write_exr(out / "comparison.exr", images)
+
+    def error(name):
+        difference = np.abs(images[name] - images["target"])
+        return difference.sum(axis=-1) if difference.ndim == 3 else difference
+
+    scale = max(float(error("before").max()), np.finfo(np.float32).tiny)
+    write_png(out / "error.png", to_uint8(error("after") / scale))
+    return ["comparison.png", "comparison.exr", "error.png"]

@@ -2,18 +2,35 @@
 
 from __future__ import annotations
 
+import sys
+
+from gpupro.pipeline.capacity import render_without_overflow
 from gpupro.pipeline.graph import Pipeline
 from gpupro.pipeline.passes import default_pipeline
 from gpupro.scene.scene import Scene
+from gpupro.scene.validate import check_scene
 
 
-def render(scene: Scene, pipeline: Pipeline | None = None, params=None, *, outputs=None) -> dict:
+def render(scene: Scene, pipeline: Pipeline | None = None, params=None, state=None, *, outputs=None, quiet: bool = False):
     """Renders one frame and returns a dict of buffers (e.g. ``hdr`` [H, W, 3], ``ldr`` [H, W, 3]) plus
-    ``counters`` (dict pass name → work counters).
+    ``counters`` (dict pass name → work counters); with ``state`` (from ``pipeline.init_state(scene)`` or
+    the previous frame) returns ``(buffers, state)``.
 
-    ``pipeline`` defaults to :func:`gpupro.pipeline.passes.default_pipeline`; ``params`` to its
+    ``pipeline`` defaults to :func:`gpupro.pipeline.default_pipeline`; ``params`` to its
     ``init_params()``; ``outputs`` to the pipeline's outputs (any intermediate buffer name works).
+    The scene is checked first (:func:`gpupro.scene.check_scene`: a ValueError names a bad field). If a
+    capacity overflows, it is grown and the frame rendered again (a line on stderr says so unless
+    ``quiet``), so no
+    light or triangle is ever missing.
     """
+    check_scene(scene)
     pipeline = pipeline or default_pipeline()
     params = pipeline.init_params() if params is None else params
-    return pipeline(params, scene, outputs=outputs)
+    result = {}
+
+    def run(p):
+        result["frame"] = p(params, scene, state, outputs=outputs)
+        return result["frame"] if state is None else result["frame"][0]
+
+    render_without_overflow(pipeline, run, log=None if quiet else sys.stderr)
+    return result["frame"]

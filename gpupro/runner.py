@@ -1,8 +1,18 @@
 """``gpupro run``: render an experiment config and write EXR, PNG preview and ``report.json``.
 
-Timing follows DESIGN.md: compile time is measured on its own (ahead-of-time lowering and
+Timing follows docs/design.md: compile time is measured on its own (ahead-of-time lowering and
 compilation of the frame function), then every frame is timed with ``block_until_ready``; the report
-gives the median, min and max per-frame milliseconds and the passes' work counters.
+gives the median, min and max per-frame milliseconds and every frame's work counters.
+
+Camera paths run in order, threading the pipeline's state (:meth:`gpupro.Pipeline.init_state`) from
+frame to frame, or, with ``devices``, as one batch sharded over the devices
+(:mod:`gpupro.pipeline.batch`). A capacity that overflows is grown and the frame rendered again
+(:mod:`gpupro.pipeline.capacity`); the report records the capacities used.
+
+Files: image buffers (declared ``image`` by their technique, [H, W] or [H, W, C ≤ 4]) go to
+``<name>.exr`` with the channel names of their specification; other buffers (light grids, per-light
+shadow visibility of more than 4 lights, any pytree) to ``<name>.npz``; a preview of one buffer to
+``<name>.png``, and for camera paths one file set per frame plus an animated ``<name>.gif``.
 """
 
 from __future__ import annotations
@@ -13,16 +23,19 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from gpupro.bench import device_info
-from gpupro.config import build_pipeline, build_scene, camera_path, load_config
+from gpupro.config import ConfigError, build_pipeline, build_scene, camera_path, describe_size, load_config
 from gpupro.io.exr import write_exr
-from gpupro.io.png import to_uint8, write_png, write_preview
+from gpupro.io.png import preview_image, write_animation, write_png
+from gpupro.pipeline.batch import batched_frame, check_batchable, select_devices, shard_frames, unpad
+from gpupro.pipeline.capacity import capacities, grown, overflows
+from gpupro.pipeline.graph import COUNTERS
+from gpupro.scene.validate import check_scene
 
-_EXR_SUFFIXES = {"normal": "XYZ", "face_normal": "XYZ", "position": "XYZ", "dpdx": "XYZ", "dpdy": "XYZ",
-                 "uv": "UV", "duvdx": "UV", "duvdy": "UV", "depth": "Z", "view_depth": "Z"}
+SATURATED_WARNING = 0.5
+"""Fraction of covered pixels at the top of the ldr range above which the runner warns."""
 
 
 def _plain(counters) -> dict:
@@ -30,86 +43,259 @@ def _plain(counters) -> dict:
     return {k: _plain(v) if isinstance(v, dict) else np.asarray(v).item() for k, v in counters.items()}
 
 
-def _write_images(buffers: dict, config: dict, out_dir: pathlib.Path, stem: str) -> list[str]:
+def _flatten(tree, prefix: str) -> dict[str, np.ndarray]:
+    """The array leaves of a pytree, keyed ``prefix/path`` (for ``.npz`` files)."""
+    leaves = jax.tree_util.tree_flatten_with_path(tree)[0]
+    return {prefix + jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in leaves}
+
+
+def _split(pipeline, buffers: dict, resolution) -> tuple[dict, dict]:
+    """(image buffers for EXR, other buffers for npz)."""
+    images, others = {}, {}
+    for name, value in buffers.items():
+        if name == COUNTERS:
+            continue
+        spec = pipeline.buffer_spec(name)
+        array = np.asarray(value) if isinstance(value, (np.ndarray, jax.Array)) else None
+        is_image = (array is not None and array.shape[:2] == tuple(resolution) and array.ndim in (2, 3)
+                    and (array.ndim == 2 or array.shape[2] <= 4) and (spec is None or spec.image))
+        (images if is_image else others)[name] = array if is_image else value
+    return images, others
+
+
+def _suffixes(pipeline, images: dict) -> dict[str, str]:
+    """EXR channel letters from each buffer's specification, where they fit its channel count."""
+    suffixes = {}
+    for name, image in images.items():
+        spec = pipeline.buffer_spec(name)
+        channels = 1 if image.ndim == 2 else image.shape[-1]
+        if spec is not None and len(spec.channels) == channels:
+            suffixes[name] = spec.channels
+    return suffixes
+
+
+def _preview_name(config: dict, pipeline) -> str | None:
+    """The buffer shown in the PNG preview; a name that is not an output is a ConfigError."""
+    outputs = pipeline.outputs
+    preview = config.get("outputs", {}).get("preview")
+    if preview is None:
+        return next((b for b in ("ldr", "hdr") if b in outputs), None)
+    if preview == "none":
+        return None
+    if preview not in outputs:
+        raise ConfigError(f"{config['_source']}: outputs.preview: {preview!r} is not one of the requested buffers "
+                          f"{list(outputs)} (outputs.buffers), or 'none'")
+    return preview
+
+
+def _write(buffers: dict, pipeline, config: dict, camera, out_dir: pathlib.Path, stem: str, preview: str | None):
+    """Writes one frame's files; returns (file names, preview image or None)."""
     outputs = config.get("outputs", {})
-    written = []
-    images = {k: np.asarray(v) for k, v in buffers.items() if k != "counters"}
-    if outputs.get("exr", True):
-        path = out_dir / f"{stem}.exr"
-        channels = lambda image: 1 if image.ndim == 2 else image.shape[-1]
-        suffixes = {k: s for k, s in _EXR_SUFFIXES.items() if k in images and channels(images[k]) == len(s)}
-        write_exr(path, images, half=outputs.get("half", False), channel_suffixes=suffixes)
-        written.append(path.name)
-    preview = outputs.get("preview", "ldr" if "ldr" in images else "hdr")
-    if preview in images:
-        path = out_dir / f"{stem}.png"
-        if preview == "ldr":
-            write_png(path, to_uint8(images[preview]))
-        else:
-            write_preview(path, images[preview])
-        written.append(path.name)
-    return written
+    images, others = _split(pipeline, buffers, camera.resolution)
+    written, shown = [], None
+    if outputs.get("exr", True) and images:
+        write_exr(out_dir / f"{stem}.exr", images, half=outputs.get("half", False), channel_suffixes=_suffixes(pipeline, images))
+        written.append(f"{stem}.exr")
+    if others:
+        arrays = {}
+        for name, value in others.items():
+            arrays.update(_flatten(value, name))
+        np.savez(out_dir / f"{stem}.npz", **arrays)
+        written.append(f"{stem}.npz")
+    if preview is not None and preview in images:
+        shown = preview_image(preview, images[preview], near=float(camera.near), far=float(camera.far))
+        write_png(out_dir / f"{stem}.png", shown)
+        written.append(f"{stem}.png")
+    return written, shown
 
 
 def _check_frame(buffers: dict, index: int):
     """Refuses to write a wrong picture: non-finite values, or triangles skipped for NaN positions."""
     for name, value in buffers.items():
-        if name != "counters" and jnp.issubdtype(value.dtype, jnp.floating) and not bool(jnp.all(jnp.isfinite(value))):
-            raise ValueError(f"frame {index}: buffer {name!r} has NaN or infinite values")
-    for pass_name, counters in buffers["counters"].items():
-        skipped = int(counters.get("nonfinite_triangles", 0))
+        if name == COUNTERS:
+            continue
+        for leaf in jax.tree.leaves(value):
+            if np.issubdtype(np.asarray(leaf).dtype, np.floating) and not np.isfinite(np.asarray(leaf)).all():
+                raise ValueError(f"frame {index}: buffer {name!r} has NaN or infinite values")
+    for pass_name, counters in buffers[COUNTERS].items():
+        skipped = int(np.max(np.asarray(counters.get("nonfinite_triangles", 0))))
         if skipped:
             raise ValueError(f"frame {index}: pass {pass_name!r} met {skipped} triangles with NaN or infinite positions")
 
 
-def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.stderr) -> dict:
+def _warnings(scene, buffers: dict, say):
+    """Warns about an image that is probably not what was meant: no lights, or mostly saturated."""
+    if scene.lights.count == 0:
+        say("warning: the scene has no lights, so only emission and ambient light show "
+            "(set [lights] in the config, or use a scene that brings its own)")
+    if "ldr" in buffers:
+        ldr = np.asarray(buffers["ldr"])
+        saturated = float(np.mean(np.max(ldr, axis=-1) >= 0.999))
+        if saturated > SATURATED_WARNING:
+            say(f"warning: {100 * saturated:.0f}% of the pixels are saturated in ldr: lower the lights' intensity "
+                "or set pipeline.params.post.exposure below 0")
+
+
+def _frame_at(buffers: dict, i: int) -> dict:
+    return jax.tree.map(lambda x: x[i], buffers)
+
+
+class _Progress:
+    """A progress bar over frames (tqdm) for camera paths, one line for a single frame."""
+
+    def __init__(self, frames: int, stream):
+        self.frames, self.stream, self.bar = frames, stream, None
+        if stream is not None and frames > 1:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=frames, file=stream, unit="frame", leave=True, dynamic_ncols=True)
+
+    def say(self, text: str):
+        if self.stream is None:
+            return
+        if self.bar is not None:
+            self.bar.write(text, file=self.stream)
+        else:
+            print(text, file=self.stream, flush=True)
+
+    def frame_done(self, index: int, ms: float):
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{ms:.1f} ms")
+            self.bar.update(1)
+        elif self.stream is not None:
+            print(f"frame {index + 1}/{self.frames}: {ms:.1f} ms", file=self.stream, flush=True)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _compile(pipeline, params, scene, state):
+    start = time.perf_counter()
+    compiled = pipeline.frame().lower(params, scene, state).compile()
+    return compiled, time.perf_counter() - start
+
+
+def _run_in_order(pipeline, params, scene, cameras, repeats, progress):
+    """Frames one after the other, threading state; returns (pipeline, frames' buffers, ms, compile s)."""
+    state = pipeline.init_state(scene) if pipeline.stateful else None
+    compiled, compile_s = _compile(pipeline, params, scene, state)
+    frames, times_ms = [], []
+    for index, camera in enumerate(cameras):
+        frame_scene = scene.replace(camera=camera)
+        while True:
+            runs = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                result = jax.block_until_ready(compiled(params, frame_scene, state))
+                runs.append(1e3 * (time.perf_counter() - start))
+            buffers, new_state = result if state is not None else (result, None)
+            found = overflows(pipeline, buffers[COUNTERS])
+            if not found:
+                break
+            pipeline = _grow(pipeline, buffers, found, progress)
+            compiled, seconds = _compile(pipeline, params, scene, state)
+            compile_s += seconds
+        state = new_state
+        times_ms += runs
+        frames.append(jax.device_get(buffers))
+        progress.frame_done(index, runs[-1])
+    return pipeline, frames, times_ms, compile_s
+
+
+def _run_batched(pipeline, params, scene, cameras, repeats, devices, progress):
+    """All frames as one batch sharded over ``devices``; returns what :func:`_run_in_order` does, with
+    per-frame times the batch time divided by the frame count."""
+    check_batchable(pipeline)
+    *placed, n = shard_frames(params, scene, cameras, select_devices(devices))
+    compile_s = 0.0
+    while True:
+        batch = batched_frame(pipeline)
+        start = time.perf_counter()
+        compiled = batch.lower(*placed).compile()
+        compile_s += time.perf_counter() - start
+        batch_ms = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            buffers = jax.block_until_ready(compiled(*placed))
+            batch_ms.append(1e3 * (time.perf_counter() - start))
+        buffers = unpad(buffers, n)
+        found = overflows(pipeline, buffers[COUNTERS])
+        if not found:
+            break
+        pipeline = _grow(pipeline, buffers, found, progress)
+    host = jax.device_get(buffers)
+    frames = [_frame_at(host, i) for i in range(n)]
+    for index in range(n):
+        progress.frame_done(index, batch_ms[-1] / n)
+    return pipeline, frames, [ms / n for ms in batch_ms], compile_s
+
+
+def _grow(pipeline, buffers, found, progress):
+    bigger = grown(pipeline, buffers[COUNTERS], found)
+    for name, capacity, count in found:
+        progress.say(f"{name}: {capacity.counter} = {count} with {capacity.option} = "
+                     f"{pipeline[name].options[capacity.option]}: growing it to {bigger[name].options[capacity.option]} "
+                     "and rendering again")
+    return bigger
+
+
+def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.stderr, devices=None) -> dict:
     """Runs the experiment in ``config_path`` (with ``--set`` style ``overrides``); returns the report.
 
-    Writes ``<name>.exr`` (all requested buffers of the last frame; ``<name>_NNNN.exr`` per frame for
-    camera paths), ``<name>.png`` and ``report.json`` under ``out_dir``.
+    Writes ``<name>.exr`` (image buffers of the last frame; ``<name>_NNNN.exr`` per frame for camera
+    paths), ``.npz`` files for buffers that are not images, ``<name>.png`` (and ``<name>.gif`` for
+    paths) and ``report.json`` under ``out_dir``. ``devices``: ``None`` renders frames in order on the
+    default device; ``"all"`` or a count renders the path as one batch sharded over that many devices.
     """
     config = load_config(config_path, overrides)
     scene = build_scene(config)
+    check_scene(scene)
     pipeline, params = build_pipeline(config)
+    preview = _preview_name(config, pipeline)
     cameras = camera_path(config, scene)
     out_dir = pathlib.Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-
-    frame = pipeline.frame()
-    start = time.perf_counter()
-    compiled = frame.lower(params, scene).compile()
-    compile_s = time.perf_counter() - start
-
-    times_ms, written = [], []
-    frames = len(cameras)
     repeats = config.get("repeats", 1)
-    for index, camera in enumerate(cameras):
-        frame_scene = scene.replace(camera=camera)
-        for _ in range(repeats):
-            start = time.perf_counter()
-            buffers = jax.block_until_ready(compiled(params, frame_scene))
-            times_ms.append(1e3 * (time.perf_counter() - start))
-        _check_frame(buffers, index)
-        if frames > 1:
-            written += _write_images(buffers, config, out_dir, f"{config['name']}_{index:04d}")
-        if progress is not None:
-            print(f"frame {index + 1}/{frames}: {times_ms[-1]:.1f} ms", file=progress, flush=True)
-    if frames == 1:
-        written += _write_images(buffers, config, out_dir, config["name"])
+    bar = _Progress(len(cameras), progress)
+    try:
+        if devices is None:
+            pipeline, frames, times_ms, compile_s = _run_in_order(pipeline, params, scene, cameras, repeats, bar)
+        else:
+            pipeline, frames, times_ms, compile_s = _run_batched(pipeline, params, scene, cameras, repeats, devices, bar)
+        for index, buffers in enumerate(frames):
+            _check_frame(buffers, index)
+        _warnings(scene, frames[-1], bar.say)
+    finally:
+        bar.close()
+
+    written, shown = [], []
+    stems = [config["name"]] if len(frames) == 1 else [f"{config['name']}_{i:04d}" for i in range(len(frames))]
+    for stem, buffers, camera in zip(stems, frames, cameras):
+        files, image = _write(buffers, pipeline, config, camera, out_dir, stem, preview)
+        written += files
+        shown.append(image)
+    if len(frames) > 1 and shown[0] is not None:
+        write_animation(out_dir / f"{config['name']}.gif", shown)
+        written.append(f"{config['name']}.gif")
 
     report = {
         "name": config["name"],
         "config": {k: v for k, v in config.items() if not k.startswith("_")},
         "config_file": config["_source"],
         "device": device_info(),
+        "devices": len(select_devices(devices)),
         "triangles": int(scene.mesh.num_faces),
         "lights": int(scene.lights.count),
-        "resolution": list(scene.camera.resolution),
+        "resolution": describe_size(scene.camera.resolution),
         "compile_s": compile_s,
-        "frames": frames,
+        "frames": len(frames),
         "timed_runs": len(times_ms),
         "frame_ms": {"median": float(np.median(times_ms)), "min": float(np.min(times_ms)), "max": float(np.max(times_ms))},
-        "counters": _plain(buffers["counters"]),
+        "frames_per_second": 1e3 / float(np.median(times_ms)),
+        "counters": _plain(frames[-1][COUNTERS]),
+        "frame_counters": [_plain(f[COUNTERS]) for f in frames],
+        "capacities": capacities(pipeline),
         "pipeline": pipeline.describe(),
         "outputs": written,
     }

@@ -70,3 +70,46 @@ def test_bad_camera_arguments_are_named(kwargs, match):
 def test_eye_equal_to_target_is_rejected():
     with pytest.raises(ValueError, match="coincide"):
         sc.make_camera((1.0, 1.0, 1.0), (1.0, 1.0, 1.0))
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(projection="orthographic", ortho_height=float("nan")), "ortho_height must be finite"),
+        (dict(fov_y_degrees=float("nan")), "fov_y_degrees must be finite"),
+        (dict(near=float("nan")), "near must be finite"),
+        (dict(far=float("inf")), "far must be finite"),
+        (dict(near="close"), "near must be a number"),
+        (dict(resolution=(float("nan"), 8)), "resolution"),
+        (dict(resolution=(8.5, 8)), "resolution"),
+    ],
+)
+def test_non_finite_numbers_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        sc.make_camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), **kwargs)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(far=3e38), r"camera far: far=3e\+38 is too large"),  # 2·far·near overflows float32
+        (dict(projection="orthographic", far=3e38), r"camera far: far=3e\+38 is too large: .*all depths equal"),
+        (dict(near=1e-40, far=1.0), r"camera near: near=.* is too small: .*all depths equal"),
+        (dict(projection="orthographic", ortho_height=1e-39), "camera ortho_height: .* too small or too large"),
+        (dict(near=1.0, far=1.0 + 1e-12), "camera near: .* too close together"),  # equal in float32
+        (dict(fov_y_degrees=1e-45), "camera fov_y_degrees: .* too small or too large"),
+    ],
+)
+def test_unusable_float32_projection_is_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        sc.make_camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), **kwargs)
+
+
+def test_float32_overflow_of_the_view_is_named():
+    with pytest.raises(ValueError, match="camera eye: the float32 view matrix is not finite"):
+        sc.make_camera((1e20, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+
+def test_accepted_camera_has_finite_float32_matrices():
+    camera = sc.make_camera((0.0, 0.0, 1e6), (0.0, 0.0, 0.0), near=1e-3, far=1e30)
+    assert np.isfinite(np.asarray(camera.view_projection())).all()

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpupro.catalogue import TECHNIQUES
+from gpupro.technique import registered
 from gpupro.cli import main
 from gpupro.io import read_exr, read_png
 
@@ -29,9 +29,33 @@ def test_console_script_is_declared_and_resolves_to_main():
 def test_list_prints_the_catalogue(capsys):
     assert main(["list"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].split()[:3] == ["id", "family", "status"]
+    assert lines[0].split() == ["id", "family", "status", "reference", "title"]
     listed = {line.split()[0] for line in lines[1:]}
-    assert listed == set(TECHNIQUES) and len(lines) == 1 + len(TECHNIQUES)
+    assert listed == set(registered()) and len(lines) == 1 + len(registered())
+
+
+def test_list_prints_a_technique_page_and_the_reference_tables(capsys):
+    assert main(["list", "shadow_maps"]) == 0
+    page = capsys.readouterr().out
+    assert page.startswith("# `shadow_maps`: ") and "| `pcf` | `3` | an odd integer >= 1 |" in page
+    assert main(["list", "--scenes"]) == 0
+    assert {"cornell_box", "atrium"} <= {line.split()[0] for line in capsys.readouterr().out.splitlines()[1:]}
+    assert main(["list", "--buffers"]) == 0
+    buffers = {line.split()[0]: line.split()[1] for line in capsys.readouterr().out.splitlines()[1:]}
+    assert buffers["hdr"] in ("deferred,", "forward,") and buffers["shadow"] == "shadow_maps"
+    assert main(["list", "--config"]) == 0
+    assert "camera.resolution" in capsys.readouterr().out
+    assert main(["list", "tiled_nonsense"]) == 2
+    assert "unknown technique 'tiled_nonsense'" in capsys.readouterr().err
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0
+    import gpupro
+
+    assert capsys.readouterr().out == f"gpupro {gpupro.__version__}\n"
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +103,9 @@ def test_run_report(default_run):
     assert {"config", "device", "compile_s", "frame_ms", "counters", "outputs"} <= set(report)
     assert report["config"]["camera"]["resolution"] == [32, 32] and report["config"]["lights"]["count"] == 16
     assert report["config"]["name"] == "default"
-    assert report["device"]["device_kind"] and report["device"]["backend"] == "cpu"
+    import jax
+
+    assert report["device"]["device_kind"] and report["device"]["backend"] == jax.default_backend()
     assert report["compile_s"] > 0
     ms = report["frame_ms"]
     assert 0 < ms["min"] <= ms["median"] <= ms["max"]
@@ -142,13 +168,16 @@ def test_camera_path_writes_one_exr_per_frame(tmp_path, capsys):
     config.write_text(CAMERA_PATH)
     out = tmp_path / "out"
     assert main(["run", str(config), "--out", str(out)]) == 0
-    progress = [line for line in capsys.readouterr().err.splitlines() if line.startswith("frame ")]
-    assert [line.split(":")[0] for line in progress] == ["frame 1/3", "frame 2/3", "frame 3/3"]
-    assert all(line.endswith(" ms") for line in progress)
-    expected = [f"orbit_{i:04d}.{ext}" for i in range(3) for ext in ("exr", "png")]
+    assert "3/3" in capsys.readouterr().err  # the progress bar reached the last frame
+    expected = [f"orbit_{i:04d}.{ext}" for i in range(3) for ext in ("exr", "png")] + ["orbit.gif"]
     assert sorted(p.name for p in out.iterdir()) == sorted(expected + ["report.json"])
     report = json.loads((out / "report.json").read_text())
     assert report["frames"] == 3 and report["outputs"] == expected
+    assert len(report["frame_counters"]) == 3 and report["frame_counters"][0]["raster"]["triangles"] == report["triangles"]
+    from PIL import Image
+
+    with Image.open(out / "orbit.gif") as gif:
+        assert gif.n_frames == 3 and gif.size == (32, 32)
     frames = [read_exr(out / f"orbit_{i:04d}.exr")["hdr"] for i in range(3)]
     assert all(f.shape == (32, 32, 3) for f in frames)
     assert np.abs(frames[0] - frames[1]).mean() > 1e-3 and np.abs(frames[1] - frames[2]).mean() > 1e-3
@@ -173,3 +202,32 @@ def test_frames_with_nan_or_skipped_triangles_are_not_written():
         _check_frame({**good, "hdr": jnp.full((2, 2, 3), jnp.nan)}, 3)
     with pytest.raises(ValueError, match="2 triangles with NaN"):
         _check_frame({**good, "counters": {"raster": {"nonfinite_triangles": jnp.int32(2)}}}, 0)
+
+
+def test_generated_docs_are_current(tmp_path):
+    """docs/techniques/*.md and docs/reference.md are what ``gpupro docs`` writes now: they cannot drift."""
+    assert main(["docs", str(tmp_path)]) == 0
+    generated = {p.relative_to(tmp_path): p.read_text() for p in tmp_path.rglob("*.md")}
+    committed = {p.relative_to(ROOT / "docs"): p.read_text() for p in (ROOT / "docs" / "techniques").glob("*.md")}
+    committed[pathlib.Path("reference.md")] = (ROOT / "docs" / "reference.md").read_text()
+    assert set(generated) == set(committed), "run `gpupro docs docs`"
+    for path, text in generated.items():
+        assert committed[path] == text, f"docs/{path} is stale: run `gpupro docs docs`"
+
+
+def test_an_unknown_preview_buffer_is_refused(tmp_path, capsys):
+    config = tmp_path / "p.toml"
+    config.write_text('[scene]\nname = "cornell_box"\n[camera]\nresolution = "16x16"\n[outputs]\npreview = "foo"\n')
+    assert main(["run", str(config), "--out", str(tmp_path / "out")]) == 2
+    assert "outputs.preview: 'foo' is not one of the requested buffers ['hdr', 'ldr']" in capsys.readouterr().err
+
+
+def test_warnings_for_a_scene_without_lights_and_a_saturated_image(tmp_path, capsys):
+    config = tmp_path / "w.toml"
+    config.write_text('[scene]\nname = "cornell_box"\n[camera]\nresolution = "16x16"\n[lights]\ngenerator = "none"\n')
+    assert main(["run", str(config), "--out", str(tmp_path / "dark")]) == 0
+    assert "warning: the scene has no lights" in capsys.readouterr().err
+    assert main(["run", str(config), "--out", str(tmp_path / "white"), "--set", 'lights.generator="scene"',
+                 "--set", "pipeline.params.post.exposure=12"]) == 0
+    err = capsys.readouterr().err
+    assert "of the pixels are saturated in ldr" in err and "no lights" not in err

@@ -8,9 +8,12 @@ import re
 import numpy as np
 import pytest
 
-from gpupro.config import (ConfigError, build_pipeline, build_scene, camera_path, check_config, load_config,
-                           parse_override)
-from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT
+from gpupro.config import (ConfigError, build_pipeline, build_scene, camera_path, check_config, describe_size,
+                           load_config, parse_override)
+from gpupro import config as config_module
+from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, no_lights
+from gpupro.scene.mesh import MeshError
+from gpupro.scene.procedural import by_name
 
 CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs"
 CORNELL = '[scene]\nname = "cornell_box"\n'
@@ -61,6 +64,31 @@ LOAD_ERRORS = {
     "explicit light with a bad value": (CORNELL + "[[lights.spot]]\nintensity = -1.0\n",
                                         r"lights\.spot\[0\]\.intensity: expected"),
     "name that is a path": ('name = "../escaped"\n' + CORNELL, r"name: expected a non-empty file name"),
+    "resolution string not WxH": (CORNELL + '[camera]\nresolution = "320 by 180"\n',
+                                  r'camera\.resolution: expected \[height, width\] .* or "WIDTHxHEIGHT" .*got \'320 by 180\''),
+    "resolution too large": (CORNELL + "[camera]\nresolution = [100000, 64]\n", r"camera\.resolution: expected .*16384"),
+    "NaN in a vector": (CORNELL + "[camera]\neye = [nan, 1.0, 2.0]\n", r"camera\.eye: expected a list of 3 finite numbers, got \[nan"),
+    "infinite number": (CORNELL + "[camera]\nfar = inf\n", r"camera\.far: expected a finite number > 0\.0, got inf"),
+    "vector beyond float32": (CORNELL + "[camera]\neye = [1e39, 1.0, 2.0]\n",
+                              r"camera\.eye: expected a list of 3 finite numbers \(numbers become float32: \|x\| <= 3\.403e\+38\)"),
+    "light path beyond float32": (CORNELL + '[lights]\ngenerator = "along_path"\npath = [[0.0, 0.0, 0.0], [1e39, 0.0, 0.0]]\n',
+                                  r"lights\.path: expected a list of at least 2 points \[x, y, z\] of finite numbers \(numbers become"),
+    "light range beyond float32": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\ncount = 4\nrange = 1e39\n',
+                                   r"lights\.range: expected a finite number > 0\.0 \(numbers become float32"),
+    "integer too large for a float": (CORNELL + f"[camera]\nnear = {10**400}\n", r"camera\.near: expected a finite number"),
+    "near that is 0 in float32": (CORNELL + "[camera]\nnear = 1e-46\n", r"camera\.near: expected a finite number > 0\.0, got 1e-46"),
+    "negative count": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\ncount = -3\n', r"lights\.count: expected an integer >= 0, got -3"),
+    "huge light count": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\ncount = 1_000_000_000_000\nrange = 1.0\n',
+                         r"lights\.count: expected an integer <= 16_777_216 .*got 1000000000000"),
+    "seed beyond 32 bits": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\nseed = 4294967296\n',
+                            r"lights\.seed: expected an integer <= 4_294_967_295"),
+    "huge frame count": ("frames = 1_000_000_000_000\n" + CORNELL, r"frames: expected an integer <= 100_000"),
+    "count the generator does not use": (CORNELL + "[lights]\ncount = 64\n",
+                                         r"lights\.count: not used by lights\.generator 'scene' \(only by uniform_in_box and along_path\)"),
+    "box of the wrong generator": (CORNELL + '[lights]\ngenerator = "along_path"\nbox_lo = [0.0, 0.0, 0.0]\n',
+                                   r"lights\.box_lo: not used by lights\.generator 'along_path' \(only by uniform_in_box\)"),
+    "point light with a direction": (CORNELL + "[[lights.point]]\ndirection = [0.0, -1.0, 0.0]\n",
+                                     r"unknown key 'lights\.point\[0\]\.direction'"),
 }
 
 # Configs that load (every key is known and well typed) but cannot be built into a scene or pipeline.
@@ -70,8 +98,8 @@ BUILD_ERRORS = {
     "param of the wrong shape": (CORNELL + "[pipeline.params.deferred]\nambient = [0.1, 0.1]\n",
                                  r"pipeline\.params\.deferred\.ambient: expected shape \[3\], got \[2\]"),
     "bad pass option": (CORNELL + '[pipeline.options.deferred]\ndistribution = "phong"\n',
-                        r"pipeline\.options\.deferred: .*'phong'"),
-    "unknown pass option": (CORNELL + "[pipeline.options.deferred]\nchunk = 8\n", r"pipeline\.options\.deferred: "),
+                        r"pipeline\.options\.deferred\.distribution: expected one of \['ggx', 'beckmann'\], got 'phong'"),
+    "unknown pass option": (CORNELL + "[pipeline.options.deferred]\nchunk = 8\n", r"pipeline\.options\.deferred\.chunk: unknown option of technique 'deferred' \(options: distribution, light_chunk\)"),
     "uniform_in_box without count": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\nrange = 2.0\n',
                                      r"lights\.count is required by generator 'uniform_in_box'"),
     "along_path without path": (CORNELL + '[lights]\ngenerator = "along_path"\ncount = 4\nrange = 2.0\n',
@@ -82,6 +110,12 @@ BUILD_ERRORS = {
                              r"lights\.spot: .*spot cones"),
     "unknown scene option": ('[scene]\nname = "cornell_box"\noptions = { size = 2.0 }\n', r"scene\.options: .*size"),
     "outputs no pass produces": (CORNELL + '[outputs]\nbuffers = ["hdr", "bloom"]\n', r"pipeline: .*bloom"),
+    "far that overflows float32": (CORNELL + "[camera]\nfar = 3e38\n", r"camera: .*far"),
+    "scene option too large for memory": ('[scene]\nname = "plane"\noptions = { subdivisions = 100_000_000 }\n',
+                                          r"scene\.options: .*allocate"),
+    "light path of zero length": (CORNELL + '[lights]\ngenerator = "along_path"\ncount = 4\nrange = 2.0\n'
+                                  "path = [[1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]\n",
+                                  r"lights \(generator 'along_path'\): .*zero length"),
 }
 
 
@@ -158,9 +192,135 @@ def test_overrides_are_checked(tmp_path, override, message):
         load_config(path, [override])
 
 
+@pytest.mark.parametrize("written", ["320x180", "320×180", " 320 x 180 ", "[180, 320]"])
+def test_resolution_is_height_width_or_a_width_x_height_string(tmp_path, written):
+    quoted = written if written.startswith("[") else f'"{written}"'
+    path = write(tmp_path, CORNELL + f"[camera]\nresolution = {quoted}\n")
+    assert load_config(path)["camera"]["resolution"] == [180, 320]
+    assert load_config(path, [f"camera.resolution={written}"])["camera"]["resolution"] == [180, 320]
+
+
+def test_a_resolution_string_reaches_the_camera_as_height_width(tmp_path):
+    config = load_config(write(tmp_path, CORNELL), ["camera.resolution=40x24"])
+    assert build_scene(config).camera.resolution == (24, 40)
+
+
+@pytest.mark.parametrize("written", ["320x", "x180", "320*180", "0x180", "320x180x2", "-320x180", "320.5x180", "16385x16"])
+def test_bad_resolution_string_names_the_key_and_the_forms(tmp_path, written):
+    path = write(tmp_path, CORNELL)
+    expected = r'camera\.resolution: expected \[height, width\] \(integers from 1 to 16384\) or "WIDTHxHEIGHT" such as "320x180"'
+    with pytest.raises(ConfigError, match=expected):
+        load_config(path, [f"camera.resolution={written}"])
+
+
+def test_describe_size_writes_width_x_height():
+    assert describe_size((180, 320)) == "320x180"
+    assert describe_size([144, 256]) == "256x144"
+    config = check_config({"scene": {"name": "plane"}, "camera": {"resolution": describe_size((24, 40))}})
+    assert config["camera"]["resolution"] == [24, 40]
+
+
+def test_error_an_override_brings_in_names_the_override(tmp_path):
+    path = write(tmp_path, CORNELL + "[camera]\nfar = 30.0\n")
+    with pytest.raises(ConfigError) as error:
+        load_config(path, ["frames=2", "camera.near=-1", "lights.generator=none"])
+    assert str(error.value) == f"{path}: --set camera.near=-1: camera.near: expected a finite number > 0.0, got -1"
+    with pytest.raises(ConfigError, match=re.escape(f"{path}: --set camera.near=50: camera.near (50) must be less than")):
+        load_config(path, ["camera.near=50"])
+
+
+def test_error_in_the_file_names_the_file_even_with_overrides(tmp_path):
+    path = write(tmp_path, CORNELL + "[camera]\nnear = -1\n")
+    with pytest.raises(ConfigError) as error:
+        load_config(path, ["lights.generator=none"])
+    assert str(error.value) == f"{path}: camera.near: expected a finite number > 0.0, got -1"
+
+
+def test_overrides_may_repair_the_file_and_pass_through_invalid_steps(tmp_path):
+    path = write(tmp_path, "[camera]\nnear = -1\nfar = 30.0\n")  # no scene, a bad near
+    config = load_config(path, ["scene.name=plane", "camera.near=50", "camera.far=100"])
+    assert config["scene"] == {"name": "plane"} and config["camera"] == {"near": 50, "far": 100}
+
+
+def test_later_scene_source_wins(tmp_path):
+    (tmp_path / "mesh.obj").write_text("")
+    named = write(tmp_path, '[scene]\nname = "sphere"\noptions = { radius = 2.0 }\n', "named.toml")
+    from_file = write(tmp_path, '[scene]\nfile = "mesh.obj"\n', "file.toml")
+    assert load_config(named, [f"scene.file={tmp_path / 'mesh.obj'}"])["scene"] == {"file": str(tmp_path / "mesh.obj")}
+    assert load_config(from_file, ["scene.name=plane"])["scene"] == {"name": "plane"}
+    assert load_config(named, ["scene.name=torus"])["scene"] == {"name": "torus", "options": {"radius": 2.0}}
+
+
+def test_scene_file_is_relative_to_the_config_or_for_overrides_to_the_working_directory(tmp_path, monkeypatch):
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "box.obj").write_text("")
+    (tmp_path / "here.obj").write_text("")
+    path = write(tmp_path / "configs", '[scene]\nfile = "box.obj"\n')
+    monkeypatch.chdir(tmp_path)
+    assert load_config(path)["scene"]["file"] == str(tmp_path / "configs" / "box.obj")
+    assert load_config(path, ["scene.file=here.obj"])["scene"]["file"] == "here.obj"
+    with pytest.raises(ConfigError, match=re.escape(f"{path}: --set scene.file=box.obj: scene.file: no such file: box.obj")):
+        load_config(path, ["scene.file=box.obj"])
+
+
+def fake_load_scene(monkeypatch, lights=None, error=None):
+    """Replaces the config's ``load_scene`` by one that records its calls and returns the plane scene."""
+    calls = []
+
+    def load_scene(path, *, resolution):
+        calls.append((path, resolution))
+        if error:
+            raise error
+        return by_name("plane", resolution=resolution, lights=lights)
+
+    monkeypatch.setattr(config_module, "load_scene", load_scene)
+    return calls
+
+
+def test_scene_file_is_loaded_by_load_scene_with_its_camera_and_lights(tmp_path, monkeypatch):
+    calls = fake_load_scene(monkeypatch)
+    (tmp_path / "mesh.obj").write_text("")
+    path = write(tmp_path, '[scene]\nfile = "mesh.obj"\n[camera]\nresolution = "40x24"\neye = [0.0, 3.0, 3.0]\n')
+    scene = build_scene(load_config(path))
+    assert calls == [(str(tmp_path / "mesh.obj"), (24, 40))]
+    assert scene.camera.resolution == (24, 40)
+    np.testing.assert_allclose(scene.camera.eye, [0.0, 3.0, 3.0])
+    np.testing.assert_array_equal(scene.lights.color, by_name("plane").lights.color)  # generator "scene"
+
+
+def test_scene_file_the_loader_refuses_names_scene_file(tmp_path, monkeypatch):
+    fake_load_scene(monkeypatch, error=MeshError("mesh.obj: no triangles in file"))
+    (tmp_path / "mesh.obj").write_text("")
+    config = load_config(write(tmp_path, '[scene]\nfile = "mesh.obj"\n'))
+    with pytest.raises(ConfigError, match=re.escape(f"{config['_source']}: scene.file: mesh.obj: no triangles")):
+        build_scene(config)
+
+
+def test_scene_file_builds_with_the_real_loader(tmp_path):
+    (tmp_path / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    scene = build_scene(load_config(write(tmp_path, '[scene]\nfile = "tri.obj"\n[camera]\nresolution = "32x16"\n')))
+    assert scene.mesh.num_faces == 1 and scene.camera.resolution == (16, 32)
+    assert scene.lights.count == 2  # load_scene's default lights, as generator "scene" asks
+
+
+@pytest.mark.parametrize("lights_table", ['generator = "scene"', 'generator = "none"', 'generator = "uniform_in_box"\ncount = 0\nrange = 1.0'])
+def test_no_lights_is_not_an_error(tmp_path, monkeypatch, lights_table):
+    fake_load_scene(monkeypatch, lights=no_lights())
+    (tmp_path / "mesh.obj").write_text("")
+    config = load_config(write(tmp_path, f'[scene]\nfile = "mesh.obj"\n[lights]\n{lights_table}\n'))
+    assert build_scene(config).lights.count == 0
+
+
+def test_camera_path_with_a_frame_whose_eye_is_on_its_target_is_refused(tmp_path):
+    text = "frames = 3\n" + CORNELL + "[camera]\nresolution = [8, 8]\n[camera.path]\neye_end = [2.78, 2.73, 0.0]\n"
+    config, scene, _ = build(write(tmp_path, text))
+    with pytest.raises(ConfigError, match=re.escape(f"{config['_source']}: camera.path: frame 2: camera eye and target coincide")):
+        camera_path(config, scene)
+
+
 def test_check_config_does_not_mutate_its_input():
     config = {"scene": {"name": "cornell_box"}, "camera": {"resolution": [8, 8]}}
-    checked = check_config(config, overrides=["camera.resolution=[4,4]", "lights.count=2"])
+    checked = check_config(config, overrides=["camera.resolution=[4,4]", "lights.generator=uniform_in_box", "lights.count=2"])
     assert config == {"scene": {"name": "cornell_box"}, "camera": {"resolution": [8, 8]}}
     assert checked["camera"]["resolution"] == [4, 4] and checked["lights"]["count"] == 2
 
@@ -287,7 +447,7 @@ def test_pipeline_options_and_params_reach_the_pipeline(tmp_path):
                       '[outputs]\nbuffers = ["hdr", "normal"]\n')
     _, _, (pipeline, params) = build(write(tmp_path, text))
     assert [p.name for p in pipeline.passes] == ["raster", "gbuffer", "forward", "post"]
-    assert dict(pipeline["forward"].options) == {"distribution": "beckmann", "light_chunk": 8, "shadows": False}
+    assert dict(pipeline["forward"].options) == {"distribution": "beckmann", "light_chunk": 8}
     assert pipeline.outputs == ("hdr", "normal")
     np.testing.assert_allclose(params["forward"]["ambient"], [0.1, 0.2, 0.3])
     np.testing.assert_array_equal(params["forward"]["background"], [0.0, 0.0, 0.0])

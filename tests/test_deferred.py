@@ -11,7 +11,9 @@ import pytest
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights, make_materials, make_mesh, no_lights, point_lights
 from gpupro.scene.light_generators import uniform_in_box
 from gpupro.raster import Fragments
-from gpupro.shading import DIELECTRIC_F0, DISTANCE_EPSILON_SQ, shade_deferred, shade_forward
+from gpupro.shading import DIELECTRIC_F0, DISTANCE_EPSILON_SQ
+from gpupro.techniques.lights.deferred import shade_deferred
+from gpupro.techniques.lights.forward import shade_forward
 
 EYE = np.array([0.0, 3.0, 3.0], np.float32)
 SHAPE = (8, 8)

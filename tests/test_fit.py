@@ -1,5 +1,5 @@
-"""Fitting: the Cornell box demo config, ``fit`` on a tiny pipeline with a known optimum, bounds, paths,
-gradient checks and the loss plot."""
+"""Fitting: the Cornell box demo config (with its before/after comparison), ``fit`` on a tiny pipeline with a
+known optimum, bounds, paths, gradient checks and the loss plot."""
 
 import contextlib
 import csv
@@ -19,8 +19,8 @@ import gpupro as gp
 from gpupro.cli import main
 from gpupro.config import ConfigError
 from gpupro.fit import FitParameter, check_grads, fit, fit_experiment, get_value, plot_curve, set_value
-from gpupro.io import read_png
-from gpupro.pipeline.passes import post_pass
+from gpupro.io import preview_image, read_exr, read_png
+from gpupro.pipeline import make_pass
 
 DEMO = pathlib.Path(__file__).resolve().parent.parent / "configs" / "fit_cornell.toml"
 
@@ -46,7 +46,8 @@ def test_demo_recovers_lights_and_roughness_within_one_percent(demo):
     for key, error in summary["max_relative_error"].items():
         assert error < 0.01, key
         np.testing.assert_allclose(summary["fitted"][key], summary["truth"][key], rtol=0.01)
-    assert re.fullmatch(r"fit_cornell: loss \S+ -> \S+ in 200 steps\nwrote loss.csv, loss.png, fitted.json in .*\n", stdout)
+    assert re.fullmatch(r"fit_cornell: loss \S+ -> \S+ in 200 steps\nwrote loss.csv, loss.png, comparison.png, "
+                        r"comparison.exr, error.png, fitted.json in .*\n", stdout)
     assert stderr.splitlines()[0] == f"step 1/200: loss {summary['loss'][0]:.4g}"
 
 
@@ -63,6 +64,30 @@ def test_demo_writes_the_loss_curve(demo):
     assert read_png(out / "loss.png").shape == (240, 320, 3)
 
 
+def test_demo_writes_target_before_and_after(demo):
+    out = demo[1]
+    summary = json.loads((out / "fitted.json").read_text())
+    assert summary["outputs"] == ["loss.csv", "loss.png", "comparison.png", "comparison.exr", "error.png",
+                                  "fitted.json"]
+    before, after = summary["error_before"], summary["error_after"]
+    assert after["loss"] < 1e-3 * before["loss"] and after["mean_absolute_error"] < 0.01 * before["mean_absolute_error"]
+    assert before["loss"] == pytest.approx(summary["loss"][0], rel=1e-5)  # step 1's loss is at the start values
+
+    buffers = read_exr(out / "comparison.exr")
+    assert sorted(buffers) == ["after", "before", "target"] and buffers["target"].shape == (48, 48, 3)
+    np.testing.assert_allclose(buffers["after"], buffers["target"], rtol=1e-2, atol=1e-3)
+    comparison = read_png(out / "comparison.png")
+    height, width, _ = comparison.shape
+    assert 48 < height < 2 * 48 and 3 * 48 <= width < 4 * 48  # three panels in a row, labels above
+    shared = {k: preview_image("hdr", v, normalise_from=buffers["target"]) for k, v in buffers.items()}
+    np.testing.assert_array_equal(comparison[-48:, :48], shared["target"])
+    np.testing.assert_array_equal(comparison[-48:, (width - 48) // 2:(width + 48) // 2], shared["before"])
+    np.testing.assert_array_equal(comparison[-48:, -48:], shared["after"])
+    assert np.any(comparison[:-48] == 0)  # label pixels
+    error = read_png(out / "error.png")
+    assert error.shape == (48, 48, 1) and error.max() < 16  # well below the start's largest error (255)
+
+
 def tiny_pipeline(*, stop_gain_gradient=False):
     """source (hdr = scene × gain, the scene being an image) → post (exposure, ACES, sRGB) → ldr."""
     def source(params, inputs, scene):
@@ -70,7 +95,7 @@ def tiny_pipeline(*, stop_gain_gradient=False):
         return {"hdr": scene * gain}
 
     source_pass = gp.Pass("source", source, (), ("hdr",), params={"gain": jnp.ones(3)})
-    return gp.Pipeline([source_pass, post_pass()], outputs=("hdr", "ldr"))
+    return gp.Pipeline([source_pass, make_pass("post")], outputs=("hdr", "ldr"))
 
 
 IMAGE = jnp.linspace(0.02, 2.0, 8 * 8 * 3).reshape(8, 8, 3)
@@ -158,7 +183,7 @@ def test_get_and_set_value_round_trip_without_mutation(cornell):
     new_params, same_scene = set_value("params.post.exposure", jnp.float32(2.0), params, scene)
     assert same_scene is scene and float(get_value("params.post.exposure", new_params, scene)) == 2.0
     assert params["post"]["exposure"] is old_exposure and float(old_exposure) == 0.0
-    assert new_params["shading"] is params["shading"]
+    assert new_params["deferred"] is params["deferred"]
 
     same_params, new_scene = set_value("scene.lights.color", 2 * old_color, params, scene)
     assert same_params is params
@@ -203,23 +228,47 @@ def test_fit_command_reports_a_bad_config_in_one_line(tmp_path, capsys):
     assert capsys.readouterr().err == f"gpupro fit: error: {config}: no [fit] section\n"
 
 
-def test_plot_curve_draws_a_decreasing_curve_going_down():
+def _axes(image):
+    """The row of the x axis and the column of the y axis: the longest black lines."""
+    black = np.all(image == 0, axis=-1)
+    return int(black.sum(axis=1).argmax()), int(black.sum(axis=0).argmax())
+
+
+def _curve(image):
+    rows, cols = np.nonzero(np.all(image == (200, 30, 30), axis=-1))
+    return rows, cols
+
+
+def test_plot_curve_draws_a_decreasing_curve_going_down_with_labelled_axes():
     image = plot_curve(list(np.geomspace(1.0, 1e-4, 60)))
     assert image.shape == (240, 320, 3) and image.dtype == np.uint8
-    rows, cols = np.nonzero(np.all(image == (200, 30, 30), axis=-1))
+    axis_row, axis_col = _axes(image)
+    rows, cols = _curve(image)
     columns = np.unique(cols)
-    assert columns.min() == 20 and columns.max() == 300  # from the left axis to the right margin
+    assert columns.min() == axis_col and columns.max() > 0.9 * 320  # from the y axis to the right margin
     lowest = np.array([rows[cols == c].max() for c in columns])
     highest = np.array([rows[cols == c].min() for c in columns])
-    assert highest[0] == 20 and lowest[-1] == 220  # top left to bottom right
+    assert lowest[-1] == axis_row and highest[0] < 0.15 * 240  # top left (1e0) to bottom right (1e-4)
     assert np.all(np.diff(lowest) >= 0) and np.all(np.diff(highest) >= 0)
-    assert np.all(image[220, 20:250] == 0) and np.all(image[100:220, 20] == 0)  # axes, away from the curve
+    black = np.all(image == 0, axis=-1)
+    assert black[highest[0] - 3:axis_row + 4, :axis_col - 4].sum() > 5 * 10  # five decade labels, 1e0 .. 1e-4
+    assert black[axis_row + 4:, axis_col:].sum() > 4 * 10  # step tick labels and the word "step"
+    assert black[:highest[0] - 3].sum() > 20  # the title
 
 
 def test_plot_curve_of_an_increasing_curve_goes_up():
     image = plot_curve([1.0, 2.0, 4.0, 8.0])
-    rows, cols = np.nonzero(np.all(image == (200, 30, 30), axis=-1))
-    assert rows[cols == cols.min()].max() == 220 and rows[cols == cols.max()].min() == 20
+    axis_row, _ = _axes(image)
+    rows, cols = _curve(image)
+    assert rows[cols == cols.min()].max() == axis_row and rows[cols == cols.max()].min() < 0.5 * axis_row
+
+
+@pytest.mark.parametrize("values", [[0.5], [0.0, 0.0], [3.0, 0.0, 1e-6]])
+def test_plot_curve_of_short_or_zero_values(values):
+    rows, _ = _curve(plot_curve(values, size=(120, 200)))
+    assert rows.size > 0
+    with pytest.raises(ValueError, match="finite"):
+        plot_curve([1.0, float("nan")])
 
 
 @pytest.mark.parametrize(

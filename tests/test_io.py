@@ -1,4 +1,5 @@
-"""EXR and PNG files: round trips, channel naming and order, files from other tools, clear errors."""
+"""EXR and PNG files: round trips, channel naming and order, files from other tools, clear errors; buffer
+previews and animated GIFs."""
 
 import struct
 import zlib
@@ -7,7 +8,8 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from gpupro.io import read_exr, read_png, to_uint8, write_exr, write_png, write_preview
+from gpupro.io import (preview_image, read_exr, read_png, to_uint8, write_animation, write_exr, write_png,
+                       write_preview)
 
 H, W = 6, 5
 
@@ -241,3 +243,86 @@ def test_write_preview_errors(tmp_path):
     bad[0, 0, 0] = np.inf
     with pytest.raises(ValueError, match="p.png.*1 NaN or infinite"):
         write_preview(tmp_path / "p.png", bad)
+
+
+# --- previews of named buffers and animations -----------------------------------------------------
+
+
+def test_preview_of_normals_maps_half_plus_half_and_keeps_empty_black():
+    normal = np.zeros((1, 3, 3), np.float32)
+    normal[0, 0], normal[0, 1] = (1, 0, 0), (-1, 0, 0)  # pixel 2 is empty
+    for name in ("normal", "face_normal"):
+        preview = preview_image(name, normal)
+        assert preview.shape == (1, 3, 3) and preview.dtype == np.uint8
+        np.testing.assert_array_equal(preview[0], [[255, 128, 128], [0, 128, 128], [0, 0, 0]])
+
+
+@pytest.mark.parametrize("near_far", [{}, {"near": 0.1, "far": 10.0}])
+def test_preview_of_depth_nearer_is_brighter_and_empty_is_black(near_far):
+    depth = np.array([[0.2, 0.9, 0.99, 1.0]], np.float32)
+    grey = preview_image("depth", depth, **near_far)[0, :, 0]
+    assert grey[0] == 255 and grey[0] > grey[1] > grey[2] > 0 and grey[3] == 0
+    np.testing.assert_array_equal(preview_image("depth", depth, **near_far)[..., 1], grey[None])  # grey
+
+
+def test_preview_of_depth_is_linearised_with_near_and_far():
+    near, far, z = 1.0, 9.0, np.array([1.0, 4.5, 8.0])  # view depths (the far plane itself is empty)
+    window = ((far + near) / (far - near) - 2 * far * near / ((far - near) * z) + 1) / 2
+    grey = preview_image("depth", window[None].astype(np.float32), near=near, far=far)[0, :, 0]
+    np.testing.assert_array_equal(grey, to_uint8([1.0, 0.55, 0.1]))  # near white, far 10% grey
+
+
+def test_preview_of_view_depth_grey_and_uv():
+    view_depth = np.array([[0.0, 2.0, 4.0]], np.float32)
+    np.testing.assert_array_equal(preview_image("view_depth", view_depth)[0, :, 0], [0, 255, 26])
+    np.testing.assert_array_equal(preview_image("roughness", np.array([[1.0, 3.0]]))[0, :, 0], [0, 255])
+    uv = np.array([[[0.0, 1.0], [1.0, 0.5]]], np.float32)
+    np.testing.assert_array_equal(preview_image("uv", uv)[0], [[0, 255, 0], [255, 128, 0]])
+    ldr = np.array([[[0.0, 0.5, 1.0]]], np.float32)
+    np.testing.assert_array_equal(preview_image("ldr", ldr)[0, 0], [0, 128, 255])
+
+
+def test_preview_of_hdr_is_exposure_normalised_and_can_share_a_normalisation():
+    hdr = np.full((2, 2, 3), 5.0, np.float32)
+    hdr[0, 0] = 0.0  # empty pixels do not pull the exposure down
+    key = preview_image("hdr", hdr)  # log-average luminance → 0.18 → Reinhard 0.18 / 1.18 → sRGB
+    np.testing.assert_array_equal(key[1, 1], to_uint8(np.full(3, 1.055 * (0.18 / 1.18) ** (1 / 2.4) - 0.055)))
+    np.testing.assert_array_equal(preview_image("hdr", 10 * hdr), key)
+    shared = preview_image("hdr", 10 * hdr, normalise_from=hdr)
+    assert np.all(shared[1, 1] > key[1, 1])
+    depth = np.array([[0.5, 0.9]], np.float32)
+    reference = np.array([[0.2, 0.9]], np.float32)
+    assert preview_image("depth", depth, normalise_from=reference)[0, 0, 0] < 255
+
+
+def test_preview_image_errors_name_the_buffer():
+    with pytest.raises(ValueError, match=r"'normal' has shape \(6, 5\); expected \[H, W, 3\]"):
+        preview_image("normal", np.zeros((H, W)))
+    with pytest.raises(ValueError, match=r"'motion' has shape \(6, 5, 4\)"):
+        preview_image("motion", np.zeros((H, W, 4)))
+    with pytest.raises(ValueError, match="'depth' has 1 NaN"):
+        preview_image("depth", np.array([[np.nan, 0.5]]))
+    with pytest.raises(ValueError, match="near and far must be given together"):
+        preview_image("depth", np.zeros((H, W)), near=0.1)
+
+
+def test_write_preview_of_a_named_buffer(tmp_path):
+    write_preview(tmp_path / "n.png", np.tile(np.float32([-1, 0, 0]), (H, W, 1)), name="normal")
+    assert np.all(read_png(tmp_path / "n.png") == [0, 128, 128])
+    write_preview(tmp_path / "d.png", np.full((H, W), 1.0, np.float32), name="depth")
+    assert read_png(tmp_path / "d.png").shape == (H, W, 1) and np.all(read_png(tmp_path / "d.png") == 0)
+
+
+def test_write_animation_loops_with_every_frame(tmp_path):
+    image_module = pytest.importorskip("PIL.Image")
+    frames = [np.full((H, W, 3), 40 * i, np.uint8) for i in range(4)]
+    write_animation(tmp_path / "sub" / "a.gif", frames, fps=10)
+    with image_module.open(tmp_path / "sub" / "a.gif") as gif:
+        assert gif.n_frames == 4 and gif.size == (W, H) and gif.info["loop"] == 0
+        assert gif.info["duration"] == 100
+        gif.seek(3)
+        np.testing.assert_array_equal(np.asarray(gif.convert("RGB"))[0, 0], [120, 120, 120])
+    with pytest.raises(ValueError, match=r"a.gif\): frame 1 has dtype float64"):
+        write_animation(tmp_path / "a.gif", [frames[0], frames[1] / 255.0])
+    with pytest.raises(ValueError, match="no frames"):
+        write_animation(tmp_path / "a.gif", [])

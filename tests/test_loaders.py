@@ -10,6 +10,7 @@ import trimesh
 import trimesh.exchange.gltf
 from trimesh.visual.material import PBRMaterial
 
+import gpupro as gp
 from gpupro.scene import MeshError
 from gpupro.scene.loaders import load_mesh
 
@@ -154,6 +155,13 @@ BAD_TEXT_FILES = {
     "two_corner_face.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2\n", "face has 2 vertices"),
     "short_vertex.obj": ("v 0 0 0\nv 1 0\nv 0 1 0\nf 1 2 3\n", "vertex has 2 coordinates"),
     "junk_index.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 x\n", "not an integer"),
+    # a line continued with a backslash still counts as two lines of the file
+    "non_planar.obj": ("v 0 0 0\nv 1 0 0\nv 1 1 \\\n0.5\nv 0 1 0\nf 1 2 3 4\n", "line 6: face of 4 vertices: polygon is not planar"),
+    "bow_tie.obj": ("v 0 0 0\nv 1 1 0\nv 1 0 0\nv 0 1 0\nf 1 2 3 4\n", "line 5: face of 4 vertices: polygon is self-intersecting"),
+    "junk_polygon_vertex.obj": ("v 0 0 0\nv 1 x 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n", "line 2: vertex coordinates '1 x 0' are not numbers"),
+    "bright_kd.obj": ("mtllib bright_kd.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl hot\nf 1 2 3\n", "material 'hot': Kd \\[2.0, 0.5, 0.5\\] is outside"),
+    "negative_ns.obj": ("mtllib negative_ns.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl shiny\nf 1 2 3\n", "material 'shiny': Ns -1.0 is negative"),
+    "back_to_back.obj": ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 3 2\n", "normals: vertex 0 has no area-weighted normal"),
     "points.ply": (_ply(TRIANGLE_VERTICES, [], 3), "no triangles"),
     "nan.ply": (_ply("0 0 0\nnan 0 0\n0 1 0\n", ["3 0 1 2"], 3), "NaN or infinite"),
     "out_of_range.ply": (_ply(TRIANGLE_VERTICES, ["3 0 1 7"], 3), "face indices must lie in"),
@@ -169,9 +177,14 @@ BAD_TEXT_FILES = {
 }
 
 
+MTL_FILES = {"bright_kd.mtl": "newmtl hot\nKd 2 0.5 0.5\n", "negative_ns.mtl": "newmtl shiny\nKd 0.5 0.5 0.5\nNs -1\n"}
+
+
 @pytest.mark.parametrize("name", sorted(BAD_TEXT_FILES))
 def test_bad_file_raises_naming_file_and_problem(tmp_path, name):
     text, problem = BAD_TEXT_FILES[name]
+    for mtl, content in MTL_FILES.items():
+        (tmp_path / mtl).write_text(content)
     path = tmp_path / name
     path.write_text(text)
     with pytest.raises(MeshError, match=re.escape(str(path)) + ".*" + problem):
@@ -212,3 +225,91 @@ def test_gltf_points_only_has_no_triangles(tmp_path):
     trimesh.Scene(trimesh.PointCloud(np.random.default_rng(0).uniform(size=(10, 3)))).export(path)
     with pytest.raises(MeshError, match=re.escape(str(path)) + ".*no triangles.*points"):
         load_mesh(path)
+
+
+# --- polygons, normals, encodings, file materials, load_scene -----------------------------------
+
+U, V = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.6, -0.8])  # orthonormal axes of a tilted plane
+PLANE_NORMAL = np.cross(U, V)
+
+
+@pytest.mark.parametrize(
+    "polygon",
+    [
+        [(0, 0), (1, 1), (2, 0), (2, 2), (0, 2)],  # notch next to corner 0: a fan from it folds over
+        [(0, 0), (2, 0), (2, 2), (1, 1), (0, 2)],  # the reflex corner on the diagonal from corner 0
+        [(0, 0), (3, 0), (3, 1), (1, 1), (1, 2), (3, 2), (3, 3), (0, 3)],  # a C shape
+    ],
+)
+def test_concave_obj_polygon_keeps_its_area_and_winding(tmp_path, polygon):
+    local = np.array(polygon, np.float64)
+    x, y = local.T
+    shoelace = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
+    origin = np.array([2.0, 1.0, 0.5])
+    corners = origin + x[:, None] * U + y[:, None] * V
+    lines = [f"v {p[0]} {p[1]} {p[2]}" for p in corners] + [f"vt {a / 4} {b / 4}" for a, b in local]
+    lines.append("f " + " ".join(f"{i}/{i}" for i in range(1, len(local) + 1)))
+    path = tmp_path / "concave.obj"
+    path.write_text("\n".join(lines) + "\n")
+    mesh, _ = load_mesh(path)
+    p, f = np.asarray(mesh.positions, np.float64), np.asarray(mesh.faces)
+    assert mesh.num_faces == len(local) - 2
+    doubled = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    assert (doubled @ PLANE_NORMAL > 0).all()  # every triangle winds as the polygon
+    assert 0.5 * np.linalg.norm(doubled, axis=1).sum() == pytest.approx(shoelace, rel=1e-6)
+    np.testing.assert_allclose(mesh.uv, np.stack([(p - origin) @ U, (p - origin) @ V], 1) / 4, atol=1e-6)  # vt kept per corner
+
+
+def test_obj_zero_normals_are_replaced_by_area_weighted_ones(tmp_path):
+    # authored normals of 0 0 0, and a zero-area face (trimesh's face normal 0) on vertex 5
+    text = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 2 2 2\nvn 0 0 0\nf 1//1 2//1 3//1\nf 1//1 3//1 4//1\nf 5//1 5//1 3//1\n"
+    (tmp_path / "zero_normals.obj").write_text(text)
+    mesh, _ = load_mesh(tmp_path / "zero_normals.obj")
+    normals, p = np.asarray(mesh.normals), np.asarray(mesh.positions)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(normals[(p[:, 2] == 0)], [[0.0, 0.0, 1.0]] * 4, atol=1e-6)
+
+
+def test_latin1_names_are_read(tmp_path):
+    (tmp_path / "cafe.obj").write_bytes(b"o caf\xe9\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n")
+    facet = b"facet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 1 0\nendloop\nendfacet\n"
+    (tmp_path / "cafe.stl").write_bytes(b"solid caf\xe9\n" + facet + b"endsolid caf\xe9\n")
+    assert load_mesh(tmp_path / "cafe.obj")[0].num_faces == 2
+    assert load_mesh(tmp_path / "cafe.stl")[0].num_faces == 1
+
+
+@pytest.mark.parametrize(
+    "where, key, value",
+    [
+        ("pbrMetallicRoughness", "roughnessFactor", -0.5),
+        ("pbrMetallicRoughness", "metallicFactor", 2.0),
+        ("pbrMetallicRoughness", "baseColorFactor", [2.0, 0.5, 0.5, 1.0]),  # trimesh would clamp it
+        (None, "emissiveFactor", [-1.0, 0.0, 0.0]),
+    ],
+)
+def test_gltf_material_factor_out_of_range_is_named(tmp_path, where, key, value):
+    box = trimesh.creation.box()
+    box.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(baseColorFactor=[255, 0, 0, 255]))
+    gltf = json.loads(trimesh.exchange.gltf.export_gltf(trimesh.Scene(box), embed_buffers=True)["model.gltf"])
+    material = gltf["materials"][0]
+    (material.setdefault(where, {}) if where else material)[key] = value
+    path = tmp_path / "bad_material.gltf"
+    path.write_text(json.dumps(gltf))
+    with pytest.raises(MeshError, match=re.escape(str(path)) + f": material 0 .*{key}"):
+        load_mesh(path)
+
+
+@pytest.fixture(scope="module")
+def pipeline():
+    return gp.default_pipeline()  # one pipeline, so the second scale reuses the first one's compilation
+
+
+@pytest.mark.parametrize("scale", [1.0, 100.0])
+def test_load_scene_frames_and_lights_a_mesh_of_any_size(tmp_path, pipeline, scale):
+    path = tmp_path / "sphere.obj"
+    trimesh.creation.icosphere(subdivisions=2, radius=scale).apply_translation([3 * scale, 0, 0]).export(path)
+    scene = gp.scenes.load(path, resolution=(32, 32))
+    assert scene.camera.resolution == (32, 32) and scene.lights.count == 2
+    ldr = np.asarray(gp.render(scene, pipeline)["ldr"])
+    assert 0.05 < ldr.mean() < 0.8
+    assert (ldr > 0.99).mean() < 0.01  # not saturated

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import gpupro as gp
-from gpupro.pipeline.passes import deferred_pass, gbuffer_pass, post_pass, raster_pass, shadow_maps_pass
+from gpupro.pipeline import make_pass, pipeline_for
 
 RES = (32, 32)
 
@@ -21,7 +21,7 @@ def test_default_pipeline_renders_a_lit_image(cornell):
     assert ldr.shape == (*RES, 3) and 0 <= ldr.min() and ldr.max() <= 1
     assert hdr.mean() > 0.01 and np.isfinite(hdr).all()
     assert int(out["counters"]["raster"]["triangles_after_culling"]) > 0
-    assert float(out["counters"]["shading"]["lighting_computations"]) == np.sum(np.asarray(
+    assert float(out["counters"]["deferred"]["lighting_computations"]) == np.sum(np.asarray(
         gp.render(cornell, outputs="coverage")["coverage"])) * cornell.lights.count
 
 
@@ -33,8 +33,9 @@ def test_forward_equals_deferred(cornell):
 
 
 def shadowed_pipeline(count=1):
-    return gp.Pipeline([raster_pass(), gbuffer_pass(), shadow_maps_pass(count=count, resolution=64),
-                        deferred_pass(shadows=True), post_pass()], outputs=("hdr", "shadow"))
+    """The default frame with a shadow-map pass: its ``shadow`` buffer is wired into deferred shading."""
+    return gp.complete([make_pass("shadow_maps", count=count, resolution=64), make_pass("deferred")],
+                       outputs=("hdr", "shadow"))
 
 
 def test_shadows_darken_only_the_shadowed_light(cornell):
@@ -43,20 +44,11 @@ def test_shadows_darken_only_the_shadowed_light(cornell):
     unshadowed = gp.render(cornell, outputs="hdr")["hdr"]
     shadow = np.asarray(out["shadow"])[..., 0]
     assert shadow.shape == RES and 0.05 < (shadow < 0.5).mean() < 0.6  # the blocks cast shadows
-    assert (np.asarray(out["hdr"]) <= np.asarray(unshadowed) + 1e-5).all()
+    # Shadowing only removes light; the tolerance is relative, as float32 sums of a few bright lights differ
+    # by rounding between the two programs (by more than 1e-5 absolute on GPUs).
+    assert (np.asarray(out["hdr"]) <= np.asarray(unshadowed) * (1 + 1e-5) + 1e-6).all()
     lit = shadow == 1.0
     np.testing.assert_allclose(np.asarray(out["hdr"])[lit], np.asarray(unshadowed)[lit], rtol=1e-5, atol=1e-6)
-
-
-def test_every_pass_parameter_has_a_correct_gradient(cornell):
-    pipeline = gp.default_pipeline()
-    params = pipeline.init_params()
-    params["shading"]["ambient"] = jnp.array([0.1, 0.2, 0.3])
-    params["shading"]["background"] = jnp.array([0.05, 0.1, 0.2])  # away from the clamp at 0
-    params["post"]["exposure"] = jnp.asarray(-1.0)
-    checked = gp.check_grads(pipeline, params, cornell, output="ldr", eps=1e-2, rtol=0.05)
-    assert set(checked) == {"params.shading.ambient", "params.shading.background", "params.post.exposure"}
-    assert all(abs(a) > 1e-4 for a, _ in checked.values())
 
 
 def test_scene_parameters_have_correct_gradients(cornell):
@@ -82,7 +74,7 @@ def test_check_grads_catches_a_wrong_gradient(cornell):
 
 def test_swapping_a_pass_changes_only_that_pass(cornell):
     pipeline = gp.default_pipeline()
-    beckmann = pipeline.replace("shading", deferred_pass(distribution="beckmann"))
+    beckmann = pipeline.with_options("deferred", distribution="beckmann")
     a = gp.render(cornell, pipeline, outputs=("hdr", "normal"))
     b = gp.render(cornell, beckmann, outputs=("hdr", "normal"))
     np.testing.assert_array_equal(np.asarray(a["normal"]), np.asarray(b["normal"]))
@@ -90,12 +82,16 @@ def test_swapping_a_pass_changes_only_that_pass(cornell):
 
 
 def test_bad_pass_options_are_named():
-    with pytest.raises(ValueError, match="distribution"):
-        deferred_pass(distribution="phong")
+    with pytest.raises(ValueError, match=r"distribution: expected one of \['ggx', 'beckmann'\], got 'phong'"):
+        make_pass("deferred", distribution="phong")
     with pytest.raises(ValueError, match="operator"):
-        post_pass(operator="filmic")
-    with pytest.raises(ValueError, match="odd pcf"):
-        shadow_maps_pass(pcf=2)
+        make_pass("post", operator="filmic")
+    with pytest.raises(ValueError, match=r"pcf: expected an odd integer >= 1, got 2"):
+        make_pass("shadow_maps", pcf=2)
+    with pytest.raises(ValueError, match=r"shadows: unknown option of technique 'deferred' \(options: distribution, light_chunk\)"):
+        make_pass("deferred", shadows=True)
+    with pytest.raises(ValueError, match=r"distribution: expected"):
+        gp.default_pipeline().with_options("deferred", distribution="phong")
 
 
 def test_forward_equals_deferred_on_textured_surfaces():

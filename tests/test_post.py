@@ -96,3 +96,13 @@ def test_jit_matches_eager():
         )
     np.testing.assert_allclose(jax.jit(srgb_encode)(IMAGE), srgb_encode(IMAGE), rtol=1e-6)
     np.testing.assert_allclose(jax.jit(srgb_decode)(IMAGE), srgb_decode(IMAGE), rtol=1e-6)
+
+
+def test_tone_curves_stay_finite_for_huge_finite_radiance():
+    from gpupro.post.tonemapping import tonemap
+
+    huge = jnp.array([1e19, 1.2e19, 3e38, 1e3], jnp.float32)
+    for operator in ("aces", "reinhard", "linear"):
+        y = np.asarray(tonemap(huge, operator=operator))
+        np.testing.assert_allclose(y, 1.0, atol=1e-3, err_msg=operator)
+    assert np.isfinite(np.asarray(tonemap(jnp.float32(1.0), operator="aces", exposure=200.0)))

@@ -1,19 +1,37 @@
-"""8-bit PNG files with the standard library only (zlib + struct), and tone-mapped previews of HDR images.
+"""8-bit PNG files with the standard library only (zlib + struct), display previews of named buffers, and
+animated GIF previews (with Pillow).
 
 Reading covers what other tools commonly write for images of this kind: 8-bit grey, grey + alpha, RGB
 and RGBA, non-interlaced, any of the five row filters. Palette, 16-bit and interlaced files are refused
 with a clear error rather than decoded wrongly. Writing uses the "Up" filter on every row, which costs
 nothing to vectorise and compresses smooth renders better than no filter.
+
+Previews (:func:`preview_image`) choose a mapping to display values from the buffer's name, so a normal
+or depth buffer is remapped rather than clamped like radiance:
+
+- ``ldr``: already sRGB display values in [0, 1], quantised.
+- ``normal``, ``face_normal``: ``0.5 + 0.5 n`` per channel; zero vectors (empty pixels) stay black.
+- ``depth`` (window depth, 1 where empty): with ``near`` and ``far`` (perspective) first linearised to
+  view depth ``z = 2 n f / (f + n − (2d − 1)(f − n))``; ``view_depth`` (0 where empty) as it is. Both
+  are normalised to ``t`` in [0, 1] between the nearest and farthest covered pixel and shown as grey
+  ``1 − 0.9 t`` (near white, far dark grey, so it stays distinct from empty black).
+- ``hdr`` and other 3-channel buffers (linear): exposed, tone mapped and sRGB encoded. The automatic
+  exposure is Reinhard et al. 2002's key scaling (eq. 2), ``x = a L / L̄`` with key ``a = 0.18`` and
+  ``L̄`` the log-average Rec. 709 luminance of the non-black pixels, then ``x / (1 + x)`` (eq. 3).
+- other 1-channel buffers: grey, normalised between their minimum and maximum.
+- 2-channel buffers (``uv``): red = first channel, green = second, clipped to [0, 1].
 """
 
 from __future__ import annotations
 
+import math
 import struct
 import zlib
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
+from PIL import Image
 
 from gpupro.post.tonemapping import OPERATORS, srgb_encode
 from gpupro.post.tonemapping import tonemap as _tonemap
@@ -22,6 +40,11 @@ _SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _COLOUR_TYPE = {1: 0, 2: 4, 3: 2, 4: 6}  # channels → PNG colour type (grey, grey+alpha, RGB, RGBA)
 _CHANNELS = {colour_type: channels for channels, colour_type in _COLOUR_TYPE.items()}
 _FILTER_UP = 2
+_KEY = 0.18  # Reinhard et al.'s middle-grey key value
+_REC709 = np.array([0.2126, 0.7152, 0.0722], np.float32)  # luminance weights of linear Rec. 709 RGB
+_FAR_GREY = 0.1  # display value of the farthest covered pixel in depth previews
+_CHANNELS_BY_MAPPING = {"display": (3,), "normal": (3,), "depth": (1,), "view_depth": (1,), "radiance": (1, 3),
+                        "grey": (1,), "red_green": (2,)}
 
 
 def to_uint8(image) -> np.ndarray:
@@ -170,28 +193,142 @@ def read_png(path) -> np.ndarray:
     return image.reshape(height, width, channels)
 
 
-def write_preview(path, hdr, *, exposure: float = 0.0, tonemap: str = "aces") -> None:
-    """Write a display preview of a linear HDR image as an 8-bit sRGB PNG at ``path``.
+def _mapping(name: str, channels: int) -> str | None:
+    """The preview mapping of buffer ``name`` with ``channels`` channels (see the module docstring), or
+    None when there is none."""
+    named = {"ldr": "display", "normal": "normal", "face_normal": "normal", "depth": "depth",
+             "view_depth": "view_depth", "hdr": "radiance"}
+    return named.get(name, {1: "grey", 2: "red_green", 3: "radiance"}.get(channels))
 
-    ``hdr`` is [H, W, 3] colour or [H, W, 1] / [H, W] grey linear radiance, finite; negative values are
-    clipped to 0. It is exposed by ``2**exposure`` (stops), tone mapped with ``tonemap`` (one of
-    :data:`gpupro.post.OPERATORS`), sRGB encoded and quantised with :func:`to_uint8`; a grey input gives
-    a grey PNG. Raises ValueError naming the path for a bad shape, non-finite values or an unknown
-    operator (listing the choices).
-    """
-    if tonemap not in OPERATORS:
-        raise ValueError(f"write_preview({path}): unknown tonemap {tonemap!r}; choose one of {OPERATORS}")
-    array = np.asarray(hdr)
+
+def _checked(where: str, name: str, image, what: str = "buffer") -> tuple[np.ndarray, str]:
+    """``image`` of buffer ``name`` as float32 [H, W, C] and its mapping, after checking its shape, dtype
+    and values; errors start with ``where`` and call the image ``what``."""
+    array = np.asarray(image)
     if array.ndim == 2:
         array = array[..., None]
-    if array.ndim != 3 or array.shape[2] not in (1, 3) or 0 in array.shape:
-        raise ValueError(
-            f"write_preview({path}): hdr has shape {np.shape(hdr)}; expected [H, W, 3], [H, W, 1] or [H, W]"
-        )
-    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
-        raise ValueError(f"write_preview({path}): hdr has dtype {array.dtype}; expected a float array")
+    mapping = _mapping(name, array.shape[2]) if array.ndim == 3 else None
+    allowed = _CHANNELS_BY_MAPPING.get(mapping, (1, 2, 3))
+    if array.ndim != 3 or array.shape[2] not in allowed or 0 in array.shape:
+        shapes = " or ".join("[H, W]" if c == 1 else f"[H, W, {c}]" for c in allowed)
+        raise ValueError(f"{where}: {what} {name!r} has shape {np.shape(image)}; expected {shapes}")
+    if array.dtype.kind not in "biuf":
+        raise ValueError(f"{where}: {what} {name!r} has dtype {array.dtype}; expected a float array")
     bad = np.count_nonzero(~np.isfinite(array))
     if bad:
-        raise ValueError(f"write_preview({path}): hdr has {bad} NaN or infinite values")
-    display = _tonemap(jnp.asarray(array, jnp.float32), operator=tonemap, exposure=exposure)
-    write_png(path, to_uint8(srgb_encode(display)))
+        raise ValueError(f"{where}: {what} {name!r} has {bad} NaN or infinite values")
+    return array.astype(np.float32), mapping
+
+
+def _linear_depth(depth: np.ndarray, near, far) -> np.ndarray:
+    """Window depth [H, W, 1] in [0, 1] → perspective view depth (world units); unchanged without near/far."""
+    if near is None:
+        return depth
+    return 2.0 * near * far / (far + near - (2.0 * depth - 1.0) * (far - near))
+
+
+def _auto_exposure(radiance: np.ndarray) -> float:
+    """Stops that bring the log-average luminance of the non-black pixels of [H, W, C] to the key 0.18."""
+    luminance = radiance[..., 0] if radiance.shape[2] == 1 else radiance @ _REC709
+    lit = luminance[luminance > 0]
+    if lit.size == 0:
+        return 0.0
+    return math.log2(_KEY) - float(np.mean(np.log2(lit)))
+
+
+def _normalised(values: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """``values`` mapped linearly so ``reference``'s min → 0 and max → 1, clipped to [0, 1]; a constant
+    reference leaves the values as they are (clipped), so all-ones coverage stays white."""
+    lo, hi = float(reference.min()), float(reference.max())
+    scaled = values if hi == lo else (values - lo) / (hi - lo)
+    return np.clip(scaled, 0.0, 1.0)
+
+
+def _depth_grey(depth: np.ndarray, covered: np.ndarray, reference: np.ndarray, reference_covered: np.ndarray):
+    """Grey display values [H, W, 1] of view depths: 1 at the nearest covered pixel of ``reference``,
+    :data:`_FAR_GREY` at its farthest, 0 where not covered."""
+    span = reference[reference_covered] if reference_covered.any() else np.zeros(1, np.float32)
+    lo, hi = float(span.min()), float(span.max())
+    t = np.clip((depth - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.zeros_like(depth)
+    return np.where(covered, 1.0 - (1.0 - _FAR_GREY) * t, 0.0)
+
+
+def _display(where, name, image, near, far, normalise_from, exposure, tonemap) -> np.ndarray:
+    """Display values in [0, 1], float32 [H, W, C] with C = 1 (grey) or 3; see :func:`preview_image`."""
+    if tonemap not in OPERATORS:
+        raise ValueError(f"{where}: unknown tonemap {tonemap!r}; choose one of {OPERATORS}")
+    if (near is None) != (far is None) or (near is not None and not 0 < near < far):
+        raise ValueError(f"{where}: near and far must be given together with 0 < near < far, got {near}, {far}")
+    array, mapping = _checked(where, name, image)
+    reference = array if normalise_from is None else _checked(where, name, normalise_from, "normalise_from of")[0]
+    if mapping == "display":
+        return array
+    if mapping == "normal":
+        return np.where(np.any(array != 0, axis=-1, keepdims=True), 0.5 + 0.5 * array, 0.0)
+    if mapping == "depth":
+        covered, reference_covered = array < 1, reference < 1
+        return _depth_grey(_linear_depth(array, near, far), covered,
+                           _linear_depth(reference, near, far), reference_covered)
+    if mapping == "view_depth":
+        return _depth_grey(array, array > 0, reference, reference > 0)
+    if mapping == "grey":
+        return _normalised(array, reference)
+    if mapping == "red_green":
+        return np.clip(np.concatenate([array, np.zeros_like(array[..., :1])], axis=-1), 0.0, 1.0)
+    stops = _auto_exposure(reference) if exposure is None else exposure
+    return np.asarray(srgb_encode(_tonemap(jnp.asarray(array), operator=tonemap, exposure=stops)))
+
+
+def preview_image(name: str, image, *, near=None, far=None, normalise_from=None, exposure=None,
+                  tonemap: str = "reinhard") -> np.ndarray:
+    """A display preview of buffer ``name`` (``image``: [H, W] or [H, W, C], finite) as uint8 [H, W, 3].
+
+    The mapping follows ``name`` and C (see the module docstring). ``near`` and ``far`` (world units,
+    perspective camera) linearise a ``depth`` buffer before it is normalised. ``normalise_from``, a
+    buffer of the same kind, supplies the normalisation instead of ``image`` (the depth or grey range,
+    the automatic exposure), so several previews share one scale. ``exposure`` (stops) fixes the
+    exposure of radiance buffers (None: automatic); ``tonemap`` is their operator, one of
+    :data:`gpupro.post.OPERATORS`. Raises ValueError naming the buffer for a bad shape, dtype or
+    non-finite values, a lone or bad ``near``/``far``, or an unknown operator.
+    """
+    display = _display(f"preview_image({name!r})", name, image, near, far, normalise_from, exposure, tonemap)
+    return np.broadcast_to(to_uint8(display), display.shape[:2] + (3,)).copy()
+
+
+def write_preview(path, image, *, name: str = "hdr", exposure: float | None = 0.0, tonemap: str = "aces",
+                  near=None, far=None) -> None:
+    """Write :func:`preview_image` of buffer ``name`` as an 8-bit PNG at ``path`` (parents are created).
+
+    The default is a linear ``hdr`` image exposed by ``2**exposure`` (stops; None: automatic), tone
+    mapped with ``tonemap`` and sRGB encoded; ``near``/``far`` linearise a ``depth`` buffer. A 1-channel
+    buffer ([H, W] or [H, W, 1]) gives a grey PNG, others RGB. Raises ValueError naming the path for a
+    bad shape, dtype or non-finite values, or an unknown operator (listing the choices).
+    """
+    display = _display(f"write_preview({path})", name, image, near, far, None, exposure, tonemap)
+    write_png(path, to_uint8(display))
+
+
+def write_animation(path, frames, *, fps: float = 12) -> None:
+    """Write ``frames`` (a non-empty list of uint8 [H, W, 3], all the same size) as an animated GIF at
+    ``path`` (parents are created) that loops forever, with Pillow.
+
+    GIF stores a palette of 256 colours per frame and frame times in hundredths of a second, so colours
+    are quantised and ``1 / fps`` is rounded to 10 ms; Pillow merges identical consecutive frames into
+    one longer frame. Raises ValueError naming the path for no frames, a bad dtype or shape, or frames
+    of different sizes, or a non-positive ``fps``.
+    """
+    path = Path(path)
+    arrays = [np.asarray(frame) for frame in frames]
+    if not arrays:
+        raise ValueError(f"write_animation({path}): no frames")
+    if not fps > 0:
+        raise ValueError(f"write_animation({path}): fps must be > 0, got {fps}")
+    for i, array in enumerate(arrays):
+        if array.dtype != np.uint8 or array.ndim != 3 or array.shape[2] != 3 or array.shape != arrays[0].shape:
+            raise ValueError(
+                f"write_animation({path}): frame {i} has dtype {array.dtype} and shape {array.shape}; "
+                f"expected uint8 [H, W, 3] like frame 0 {arrays[0].shape}"
+            )
+    images = [Image.fromarray(array) for array in arrays]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=1000 / fps, loop=0)

@@ -21,6 +21,15 @@ Parameters. ``init_params()`` returns ``{pass name: default params}`` for the pa
 not ``None``; passes without params are omitted and receive ``None``. A ``params`` argument must have
 exactly those keys: a missing or extra key is a :class:`PipelineError` naming it, so that a typo in a
 fitting script is caught rather than silently falling back to defaults.
+
+Optional inputs. A pass may list ``optional`` inputs: they are wired when some pass of the pipeline
+produces them (a shadow-map pass feeding shading) and left out of ``inputs`` otherwise.
+
+State (as brax's ``init``/``step``). A pass with ``init_state`` carries state from frame to frame (a
+temporal filter's history, a clipmap's toroidal origin): ``init_state(scene)`` gives the first frame's
+state of every such pass, and ``frame(params, scene, state)`` returns ``(buffers, state)``; called
+without ``state`` it renders a first frame and returns the buffers alone, so stateless pipelines and
+their callers do not notice.
 """
 
 from __future__ import annotations
@@ -59,10 +68,16 @@ class Pass:
     """One node of the frame graph.
 
     ``fn(params, inputs, scene, **options)`` receives this pass's params (``None`` if it has none), a
-    dict holding exactly the declared ``inputs``, and the scene pytree; it returns a dict holding exactly
-    the declared ``outputs``, or ``(outputs, counters)`` with ``counters`` a dict of scalar work counters.
+    dict holding the declared ``inputs`` (and those ``optional`` inputs that the pipeline produces), and
+    the scene pytree; it returns a dict holding exactly the declared ``outputs``, or ``(outputs,
+    counters)`` with ``counters`` a dict of scalar work counters. With ``init_state`` (``scene`` →
+    the first frame's state pytree) it is called ``fn(params, inputs, scene, state, **options)`` and
+    returns ``(outputs, counters, state)``.
     ``options`` are static, hashable and passed as Python values (never traced), so they may set shapes.
-    ``params`` is the default differentiable pytree of float arrays, or ``None``.
+    ``params`` is the default differentiable pytree of float arrays, or ``None``. ``technique`` is the
+    registered specification the pass was made from (:func:`gpupro.pipeline.passes.make_pass`), if any.
+    ``bind`` maps a buffer name in ``inputs``/``optional`` to the name ``fn`` knows it by (a fog pass's
+    ``hdr_fog`` fed to post as its ``hdr``).
     """
 
     name: str
@@ -71,13 +86,21 @@ class Pass:
     outputs: tuple[str, ...]
     options: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     params: Any = None
+    optional: tuple[str, ...] = ()
+    init_state: Callable[[Any], Any] | None = None
+    technique: Any = None
+    bind: Mapping[str, str] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
             raise PipelineError(f"pass name must be a non-empty string, got {self.name!r}")
         owner = f"pass {self.name!r}"
         object.__setattr__(self, "inputs", _names(self.inputs, "inputs", owner))
+        object.__setattr__(self, "optional", _names(self.optional, "optional inputs", owner))
         object.__setattr__(self, "outputs", _names(self.outputs, "outputs", owner))
+        both = sorted(set(self.inputs) & set(self.optional))
+        if both:
+            raise PipelineError(f"{owner}: {both} listed as both required and optional inputs")
         if COUNTERS in self.outputs:
             raise PipelineError(f"{owner}: the buffer name {COUNTERS!r} is reserved for work counters")
         options = dict(self.options)
@@ -89,25 +112,40 @@ class Pass:
                                     "must be (use a tuple, or put arrays in params)") from None
         # Read-only so that a pipeline's passes cannot change behind its cached jitted frames.
         object.__setattr__(self, "options", types.MappingProxyType(options))
+        object.__setattr__(self, "bind", types.MappingProxyType(dict(self.bind)))
         self._check_signature()
 
+    @property
+    def stateful(self) -> bool:
+        return self.init_state is not None
+
     def _check_signature(self):
-        """Fail now, naming the pass, if ``fn`` cannot take ``(params, inputs, scene, **options)``."""
+        """Fail now, naming the pass, if ``fn`` cannot take ``(params, inputs, scene[, state], **options)``."""
         try:
             signature = inspect.signature(self.fn)
         except (TypeError, ValueError):  # some builtins and C callables expose no signature
             return
+        positional = (None, {}, None) + ((None,) if self.stateful else ())
         try:
-            signature.bind(None, {}, None, **self.options)
+            signature.bind(*positional, **self.options)
         except TypeError as e:
-            raise PipelineError(f"pass {self.name!r}: fn cannot be called as fn(params, inputs, scene, "
+            state = ", state" if self.stateful else ""
+            raise PipelineError(f"pass {self.name!r}: fn cannot be called as fn(params, inputs, scene{state}, "
                                 f"**{dict(self.options)}): {e}") from None
 
-    def run(self, params: Any, buffers: Mapping[str, jax.Array], scene: Any):
-        """Call ``fn`` on this pass's declared inputs; return ``(outputs, counters)`` after checking the
+    def run(self, params: Any, buffers: Mapping[str, Any], scene: Any, state: Any = None):
+        """Call ``fn`` on this pass's inputs; return ``(outputs, counters, state)`` after checking the
         returned buffers against the declared ``outputs``."""
-        result = self.fn(params, {k: buffers[k] for k in self.inputs}, scene, **self.options)
-        outputs, counters = result if isinstance(result, tuple) and len(result) == 2 else (result, {})
+        inputs = {self.bind.get(k, k): buffers[k] for k in self.inputs}
+        inputs.update({self.bind.get(k, k): buffers[k] for k in self.optional if k in buffers})
+        if self.stateful:
+            result = self.fn(params, inputs, scene, state, **self.options)
+            if not (isinstance(result, tuple) and len(result) == 3):
+                raise PipelineError(f"pass {self.name!r} carries state and must return (buffers, counters, state)")
+            outputs, counters, state = result
+        else:
+            result = self.fn(params, inputs, scene, **self.options)
+            outputs, counters = result if isinstance(result, tuple) and len(result) == 2 else (result, {})
         if not isinstance(outputs, Mapping) or not isinstance(counters, Mapping):
             raise PipelineError(f"pass {self.name!r} must return a dict of buffers or (buffers, counters) "
                                 f"dicts, got {type(result).__name__}")
@@ -120,7 +158,7 @@ class Pass:
             if jnp.ndim(value) != 0:
                 raise PipelineError(f"pass {self.name!r}: counter {key!r} must be a scalar, "
                                     f"got shape {jnp.shape(value)}")
-        return dict(outputs), dict(counters)
+        return dict(outputs), dict(counters), state
 
 
 class Pipeline:
@@ -158,7 +196,7 @@ class Pipeline:
         self._passes = _toposort(passes, producer)
         self._by_name = {p.name: p for p in self._passes}
         self._producer = producer
-        consumed = {b for p in passes for b in p.inputs}
+        consumed = {b for p in passes for b in p.inputs + p.optional}
         sinks = tuple(b for p in self._passes for b in p.outputs if b not in consumed)
         self._outputs = sinks if outputs is None else self._check_requested(outputs)
         self._frames: dict[tuple[str, ...], Callable] = {}
@@ -193,9 +231,24 @@ class Pipeline:
                                 f"available buffers: {sorted(self._producer)}")
         return requested
 
+    @property
+    def stateful(self) -> tuple[str, ...]:
+        """The names of the passes that carry state from frame to frame."""
+        return tuple(p.name for p in self._passes if p.stateful)
+
+    def buffer_spec(self, name: str):
+        """The :class:`gpupro.technique.Buffer` declaring buffer ``name`` (channel names, whether it is an
+        image), from the technique of the pass producing it; ``None`` for passes made by hand."""
+        technique = self._by_name[self._producer[name]].technique if name in self._producer else None
+        return next((b for b in technique.outputs if b.name == name), None) if technique else None
+
     def init_params(self) -> dict[str, Any]:
         """Default params ``{pass name: pytree of float arrays}``; passes with ``params=None`` are omitted."""
         return {p.name: jax.tree.map(jnp.asarray, p.params) for p in self._passes if p.params is not None}
+
+    def init_state(self, scene: Any) -> dict[str, Any]:
+        """The first frame's state ``{pass name: pytree}`` of the passes that carry state (empty if none)."""
+        return {p.name: p.init_state(scene) for p in self._passes if p.stateful}
 
     def _needed(self, requested: tuple[str, ...]) -> tuple[Pass, ...]:
         """The passes that ``requested`` depends on, in execution order."""
@@ -205,7 +258,8 @@ class Pipeline:
             name = stack.pop()
             if name not in needed:
                 needed.add(name)
-                stack.extend(self._producer[b] for b in self._by_name[name].inputs)
+                p = self._by_name[name]
+                stack.extend(self._producer[b] for b in p.inputs + p.optional if b in self._producer)
         return tuple(p for p in self._passes if p.name in needed)
 
     def _check_params(self, params: Any):
@@ -219,31 +273,46 @@ class Pipeline:
             raise PipelineError(f"params is missing entries for passes {missing} and has unexpected entries "
                                 f"{extra}; expected exactly {expected} (see Pipeline.init_params())")
 
-    def frame(self, outputs: str | Sequence[str] | None = None) -> Callable[[Any, Any], dict[str, Any]]:
-        """The jitted ``frame(params, scene) -> {buffer: array, "counters": {pass: {name: scalar}}}``.
+    def _check_state(self, state: Any, needed: tuple[Pass, ...]):
+        if not isinstance(state, Mapping):
+            raise PipelineError(f"state must be a dict keyed by pass name, got {type(state).__name__}")
+        missing = [p.name for p in needed if p.stateful and p.name not in state]
+        if missing:
+            raise PipelineError(f"state lacks entries for passes {missing} (see Pipeline.init_state(scene))")
 
-        Returns the requested buffers (default: ``self.outputs``) and the counters of every pass that ran;
-        only the passes those buffers need run. Cached per requested output tuple.
+    def frame(self, outputs: str | Sequence[str] | None = None) -> Callable[..., Any]:
+        """The jitted ``frame(params, scene, state=None)``.
+
+        Returns ``{buffer: array, "counters": {pass: {name: scalar}}}`` for the requested buffers
+        (default: ``self.outputs``) with the counters of every pass that ran; only the passes those
+        buffers need run. With ``state`` (a dict from :meth:`init_state` or the previous frame), returns
+        ``(buffers, state)``, the state of the passes that did not run passed through unchanged. Cached
+        per requested output tuple.
         """
         requested = self._outputs if outputs is None else self._check_requested(outputs)
         if requested not in self._frames:
             needed = self._needed(requested)
 
-            def frame(params, scene):
+            def frame(params, scene, state=None):
                 self._check_params(params)  # runs at trace time: params' keys are part of its structure
+                carried = self.init_state(scene) if state is None else dict(state)
+                self._check_state(carried, needed)
                 buffers: dict[str, Any] = {}
                 counters: dict[str, dict[str, Any]] = {}
                 for p in needed:
-                    produced, counters[p.name] = p.run(params.get(p.name), buffers, scene)
+                    produced, counters[p.name], new = p.run(params.get(p.name), buffers, scene, carried.get(p.name))
+                    if p.stateful:
+                        carried[p.name] = new
                     buffers.update(produced)
-                return {**{b: buffers[b] for b in requested}, COUNTERS: counters}
+                result = {**{b: buffers[b] for b in requested}, COUNTERS: counters}
+                return result if state is None else (result, carried)
 
             self._frames[requested] = jax.jit(frame)
         return self._frames[requested]
 
-    def __call__(self, params: Any, scene: Any, *, outputs: str | Sequence[str] | None = None):
-        """Run one frame: ``self.frame(outputs)(params, scene)``."""
-        return self.frame(outputs)(params, scene)
+    def __call__(self, params: Any, scene: Any, state: Any = None, *, outputs: str | Sequence[str] | None = None):
+        """Run one frame: ``self.frame(outputs)(params, scene, state)``."""
+        return self.frame(outputs)(params, scene, state)
 
     def replace(self, name: str, new_pass: Pass) -> Pipeline:
         """A new pipeline with pass ``name`` swapped for ``new_pass`` (e.g. brute-force vs tiled shading)."""
@@ -251,19 +320,32 @@ class Pipeline:
         return Pipeline([new_pass if p is old else p for p in self._passes], outputs=self._outputs)
 
     def with_options(self, name: str, **options: Any) -> Pipeline:
-        """A new pipeline in which pass ``name`` has ``options`` updated (others kept)."""
+        """A new pipeline in which pass ``name`` has ``options`` updated (others kept, params kept).
+
+        Passes made from a registered technique are rebuilt by :func:`gpupro.pipeline.passes.make_pass`,
+        so the new options are validated as when the pass was first built.
+        """
         old = self[name]
-        return self.replace(name, dataclasses.replace(old, options={**old.options, **options}))
+        if old.technique is None:
+            return self.replace(name, dataclasses.replace(old, options={**old.options, **options}))
+        from gpupro.pipeline.passes import make_pass  # the factory builds on this module
+
+        inputs = {declared: buffer for buffer, declared in old.bind.items()}
+        return self.replace(name, make_pass(old.technique, name=name, params=old.params, inputs=inputs,
+                                            **{**old.options, **options}))
 
     def describe(self) -> str:
         """Passes in execution order with their inputs → outputs, options and whether they have params."""
         lines = [f"Pipeline: {len(self._passes)} passes, outputs {list(self._outputs)}"]
         for i, p in enumerate(self._passes, 1):
-            line = f"  {i}. {p.name}: {', '.join(p.inputs) or '-'} -> {', '.join(p.outputs)}"
+            wired = p.inputs + tuple(b for b in p.optional if b in self._producer)
+            line = f"  {i}. {p.name}: {', '.join(wired) or '-'} -> {', '.join(p.outputs)}"
             if p.options:
                 line += " {" + ", ".join(f"{k}={v!r}" for k, v in p.options.items()) + "}"
             if p.params is not None:
                 line += " [params]"
+            if p.stateful:
+                line += " [state]"
             lines.append(line)
         return "\n".join(lines)
 
@@ -274,7 +356,7 @@ class Pipeline:
 def _toposort(passes: tuple[Pass, ...], producer: Mapping[str, str]) -> tuple[Pass, ...]:
     """Kahn's algorithm taking, among ready passes, the one given first, so the order is stable."""
     index = {p.name: i for i, p in enumerate(passes)}
-    deps = {p.name: {producer[b] for b in p.inputs} for p in passes}
+    deps = {p.name: {producer[b] for b in p.inputs + p.optional if b in producer} for p in passes}
     users: dict[str, list[str]] = {p.name: [] for p in passes}
     for name, ds in deps.items():
         for d in ds:
@@ -294,7 +376,8 @@ def _toposort(passes: tuple[Pass, ...], producer: Mapping[str, str]) -> tuple[Pa
     if remaining:
         cycle = _find_cycle(set(remaining), deps)
         by_name = {p.name: p for p in passes}
-        links = [b for src, dst in zip(cycle, cycle[1:]) for b in by_name[dst].inputs if producer[b] == src]
+        links = [b for src, dst in zip(cycle, cycle[1:]) for b in by_name[dst].inputs + by_name[dst].optional
+                 if producer.get(b) == src]
         raise PipelineError(f"the passes form a cycle: {' -> '.join(cycle)} (through buffers {links})")
     return tuple(order)
 

@@ -57,6 +57,9 @@ def aces_fitted(x):
     Tone Mapping Curve", knarkowicz.wordpress.com, 2016-01-06. The fit is pre-exposed (``1 → ≈ 0.8``);
     for the original ACES curve pass ``0.6 x``. Returns linear display values in [0, 1], ``x``'s shape.
     """
+    # The curve reaches 1 at x ≈ 7.24 and stays above it, so evaluating at min(x, 64) changes no output
+    # and keeps x² finite: unclipped, finite x above about 1e19 gave inf / inf = NaN.
+    x = jnp.minimum(x, 64.0)
     return jnp.clip(x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14), 0.0, 1.0)
 
 

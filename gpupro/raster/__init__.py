@@ -1,4 +1,6 @@
-"""Rasterization: the tiled rasterizer, its brute-force reference, and the G-buffer pass."""
+"""Rasterization ops: the tiled rasterizer, its brute-force reference, attribute interpolation and the
+reconstruction of the visible surface (the building blocks of the raster, G-buffer and shading passes)."""
 
+from gpupro.raster.interpolate import Interpolated, interpolate
 from gpupro.raster.rasterize import Fragments, rasterize, reference
-from gpupro.raster.gbuffer import GBUFFER_BUFFERS, gbuffer_from_fragments, rasterize_scene, render_gbuffer
+from gpupro.raster.surface import SURFACE_BUFFERS, normalize, rasterize_scene, surface_from_fragments

@@ -1,6 +1,6 @@
 """Cameras: look-at view matrices and OpenGL-convention projections.
 
-Conventions (DESIGN.md): right-handed world, the camera looks down its -z axis, clip space follows
+Conventions (docs/design.md): right-handed world, the camera looks down its -z axis, clip space follows
 OpenGL (x right, y up, z in [-w, w]); NDC y = +1 is image row 0; window depth is
 ``0.5 * z_ndc + 0.5`` in [0, 1] with near = 0.
 
@@ -30,6 +30,7 @@ import numpy as np
 from gpupro.numerics import matmul
 
 PROJECTIONS = ("perspective", "orthographic")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @jax.tree_util.register_dataclass
@@ -89,30 +90,32 @@ def make_camera(
 
     ``eye``, ``target``, ``up``: 3-vectors in world units; ``fov_y_degrees``: vertical field of view;
     ``near``/``far``: clip distances (0 < near < far); ``resolution``: ``(height, width)`` pixels.
-    Raises ``ValueError`` naming the bad argument.
+    Raises ``ValueError`` naming the bad argument: numbers not finite in float32, values out of range,
+    and values whose float32 matrices are unusable (see :func:`matrix_problem`; e.g. ``far = 3e38``).
     """
     eye_np, target_np, up_np = (np.asarray(v, np.float64).reshape(-1) for v in (eye, target, up))
     for name, v in (("eye", eye_np), ("target", target_np), ("up", up_np)):
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"camera {name} must be 3 finite numbers, got {v.tolist()}")
+        if v.shape != (3,) or not np.all(np.abs(v) <= _FLOAT32_MAX):
+            raise ValueError(f"camera {name} must be 3 numbers finite in float32, got {v.tolist()}")
+    fov_y_degrees, near, far, ortho_height = (
+        _finite(name, value)
+        for name, value in (("fov_y_degrees", fov_y_degrees), ("near", near), ("far", far), ("ortho_height", ortho_height))
+    )
     if projection not in PROJECTIONS:
         raise ValueError(f"camera projection must be one of {PROJECTIONS}, got {projection!r}")
-    if not (0.0 < near < far) or not np.isfinite(far):
-        raise ValueError(f"camera needs 0 < near < far < inf, got near={near}, far={far}")
+    if not (0.0 < near < far):
+        raise ValueError(f"camera needs 0 < near < far, got near={near}, far={far}")
     if not (0.0 < fov_y_degrees < 180.0):
         raise ValueError(f"camera fov_y_degrees must be in (0, 180), got {fov_y_degrees}")
     if ortho_height <= 0.0:
         raise ValueError(f"camera ortho_height must be > 0, got {ortho_height}")
-    height, width = (int(r) for r in resolution)
-    if height <= 0 or width <= 0:
-        raise ValueError(f"camera resolution must be positive (height, width), got {resolution}")
     forward = target_np - eye_np
     if np.linalg.norm(forward) == 0.0:
         raise ValueError("camera eye and target coincide")
     if np.linalg.norm(np.cross(forward, up_np)) < 1e-9 * np.linalg.norm(forward) * max(np.linalg.norm(up_np), 1e-30):
         raise ValueError("camera up vector is parallel to the viewing direction")
     f32 = lambda x: jnp.asarray(x, jnp.float32)
-    return Camera(
+    camera = Camera(
         eye=f32(eye_np),
         target=f32(target_np),
         up=f32(up_np),
@@ -120,9 +123,65 @@ def make_camera(
         near=f32(near),
         far=f32(far),
         ortho_height=f32(ortho_height),
-        resolution=(height, width),
+        resolution=_resolution(resolution),
         projection=projection,
     )
+    problem = matrix_problem(camera)
+    if problem:
+        field, why = problem
+        raise ValueError(f"camera {'fov_y_degrees' if field == 'fov_y' else field}: {why}")
+    return camera
+
+
+def _finite(name: str, value) -> float:
+    """``value`` as a float, or a ValueError naming ``name`` when it is not a finite number."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"camera {name} must be a number, got {value!r}") from None
+    if not abs(number) <= _FLOAT32_MAX:
+        raise ValueError(f"camera {name} must be finite in float32 (|x| <= 3.4e38), got {number}")
+    return number
+
+
+def _resolution(resolution) -> tuple[int, int]:
+    """``(height, width)`` as positive ints, or a ValueError naming ``resolution``."""
+    try:
+        height, width = (float(r) for r in resolution)
+    except (TypeError, ValueError):
+        raise ValueError(f"camera resolution must be two numbers (height, width), got {resolution!r}") from None
+    if not (height.is_integer() and width.is_integer() and height > 0 and width > 0):
+        raise ValueError(f"camera resolution must be positive integers (height, width), got {resolution}")
+    return int(height), int(width)
+
+
+def matrix_problem(camera: Camera) -> tuple[str, str] | None:
+    """Why the float32 view, projection or view-projection matrix of a concrete ``camera`` is unusable,
+    as (the :class:`Camera` field to blame, reason), or None. Unusable: not finite, or a scale entry
+    that underflows (zero or subnormal, which GPUs flush to zero), which maps every point to the image
+    centre or every depth to one value."""
+    tiny = np.finfo(np.float32).tiny
+    ortho = camera.projection == "orthographic"
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+        if not np.isfinite(np.asarray(camera.view_matrix())).all():
+            return "eye", "the float32 view matrix is not finite: eye, target or up are too large or too small for float32"
+        projection = np.asarray(camera.projection_matrix())
+        near, far = np.float32(camera.near), np.float32(camera.far)
+        xy = projection[[0, 1], [0, 1]]
+        if not (np.isfinite(xy).all() and (np.abs(xy) >= tiny).all()):
+            field = "ortho_height" if ortho else "fov_y"
+            return field, f"{field} is too small or too large for a float32 projection matrix"
+        if not np.isfinite(projection[2]).all():
+            if not np.isfinite(np.float32(2.0) / (far - near)):
+                return "near", f"near={near:g} and far={far:g} are too close together for a finite float32 projection matrix"
+            return "far", f"far={far:g} is too large (with near={near:g}): the float32 projection matrix overflows"
+        if abs(projection[2, 2] if ortho else projection[2, 3]) < tiny:
+            if ortho:
+                return "far", f"far={far:g} is too large: the float32 depth scale 2 / (far - near) underflows (all depths equal)"
+            return "near", f"near={near:g} is too small: the float32 depth offset 2 far near / (near - far) underflows (all depths equal)"
+        if not np.isfinite(np.asarray(camera.view_projection())).all():
+            return "eye", "the float32 view-projection matrix overflows: eye is too far from the origin for this projection"
+    return None
 
 
 def look_at(eye: jax.Array, target: jax.Array, up: jax.Array) -> jax.Array:

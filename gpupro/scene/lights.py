@@ -52,7 +52,8 @@ def make_lights(
     """Builds validated :class:`Lights` (host side) from per-light values; N = len(kind).
 
     ``kind`` [N] of POINT/SPOT/DIRECTIONAL; ``position``, ``direction``, ``color`` [N, 3];
-    ``range`` [N] > 0; spot cone half-angles in degrees with 0 <= inner <= outer < 90.
+    ``range`` [N] finite and > 0 (ignored for directional lights); spot cone half-angles in degrees
+    with 0 <= inner <= outer < 90.
     """
     k = np.atleast_1d(np.asarray(kind, np.int32))
     n = k.shape[0]
@@ -76,8 +77,8 @@ def make_lights(
         raise ValueError("lights: color must be non-negative")
     rng = np.broadcast_to(np.asarray(10.0 if range is None else range, np.float32), (n,)).copy()
     rng = np.where(k == DIRECTIONAL, np.inf, rng).astype(np.float32)
-    if (rng[k != DIRECTIONAL] <= 0).any() or np.isnan(rng).any():
-        raise ValueError("lights: range must be > 0")
+    if not (np.isfinite(rng[k != DIRECTIONAL]) & (rng[k != DIRECTIONAL] > 0)).all():
+        raise ValueError("lights: range must be finite and > 0 for point and spot lights")
     inner = np.broadcast_to(np.asarray(30.0 if inner_angle_degrees is None else inner_angle_degrees, np.float32), (n,))
     outer = np.broadcast_to(np.asarray(45.0 if outer_angle_degrees is None else outer_angle_degrees, np.float32), (n,))
     if ((inner < 0) | (inner > outer) | (outer >= 90)).any():

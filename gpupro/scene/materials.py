@@ -19,7 +19,7 @@ class Materials:
     """Per-material parameters, each indexed by material id (M materials).
 
     ``base_color`` float32 [M, 3] linear RGB in [0, 1]; ``roughness`` float32 [M] (perceptual, in [0, 1]);
-    ``metallic`` float32 [M] in [0, 1]; ``emission`` float32 [M, 3] (radiance, linear RGB);
+    ``metallic`` float32 [M] in [0, 1]; ``emission`` float32 [M, 3] (radiance, linear RGB, >= 0);
     ``texture_index`` int32 [M], the base-colour texture of each material or -1;
     ``textures``: a tuple of mip levels, level ``l`` float32 [T, S >> l, S >> l, 3]; empty when T = 0.
     The texture multiplies ``base_color``.
@@ -37,6 +37,28 @@ class Materials:
         return self.base_color.shape[0]
 
 
+RANGES = {"base_color": (0.0, 1.0), "roughness": (0.0, 1.0), "metallic": (0.0, 1.0), "emission": (0.0, np.inf)}
+"""Allowed closed range (low, high) of each material parameter; every value must also be finite."""
+
+
+def range_problem(name: str, values) -> str | None:
+    """What breaks :data:`RANGES` in ``values`` ([M] or [M, 3], of parameter ``name``), naming the first
+    bad material, or None when every value is finite and in range."""
+    low, high = RANGES[name]
+    allowed = f"allowed: finite and in [{low:g}, {high:g}]" if np.isfinite(high) else f"allowed: finite and >= {low:g}"
+    v = np.asarray(values, np.float64)
+    v = v[:, None] if v.ndim == 1 else v  # [M, channels]
+    finite = np.isfinite(v).all(axis=1)
+    if not finite.all():
+        return f"material {int(np.argmin(finite))} has a NaN or infinite value; {allowed}"
+    inside = ((v >= low) & (v <= high)).all(axis=1)
+    if not inside.all():
+        i = int(np.argmin(inside))
+        value = ", ".join(f"{x:g}" for x in v[i])
+        return f"material {i} has {f'[{value}]' if v.shape[1] > 1 else value}; {allowed}"
+    return None
+
+
 def make_materials(
     base_color,
     *,
@@ -50,22 +72,29 @@ def make_materials(
 
     ``base_color`` [M, 3]; ``roughness``, ``metallic`` [M] (defaults 0.5 and 0); ``emission`` [M, 3]
     (default 0); ``texture_index`` [M] (default -1); ``textures`` float [T, S, S, 3] with S a power
-    of two, from which the mip pyramid is built.
+    of two, from which the mip pyramid is built. Raises ``ValueError`` naming the argument, the first
+    material outside its range (:data:`RANGES`) and the range.
     """
     base = np.atleast_2d(np.asarray(base_color, np.float32))
     m = base.shape[0]
-    if base.shape != (m, 3) or not np.isfinite(base).all():
-        raise ValueError(f"materials: base_color must be finite with shape [M, 3], got {list(base.shape)}")
+    if base.shape != (m, 3):
+        raise ValueError(f"materials: base_color must have shape [M, 3], got {list(base.shape)}")
 
     def per_material(value, default, shape, name):
-        arr = np.full(shape, default, np.float32) if value is None else np.asarray(value, np.float32).reshape(shape)
-        if not np.isfinite(arr).all():
-            raise ValueError(f"materials: {name} has NaN or infinite values")
-        return arr
+        if value is None:
+            return np.full(shape, default, np.float32)
+        arr = np.asarray(value, np.float32)
+        if arr.size != np.prod(shape):
+            raise ValueError(f"materials: {name} must have shape {list(shape)}, got {list(arr.shape)}")
+        return arr.reshape(shape)
 
     rough = per_material(roughness, 0.5, (m,), "roughness")
     metal = per_material(metallic, 0.0, (m,), "metallic")
     emit = per_material(emission, 0.0, (m, 3), "emission")
+    for name, values in (("base_color", base), ("roughness", rough), ("metallic", metal), ("emission", emit)):
+        problem = range_problem(name, values)
+        if problem:
+            raise ValueError(f"materials: {name}: {problem}")
     tex_idx = np.full((m,), -1, np.int32) if texture_index is None else np.asarray(texture_index, np.int32).reshape(m)
     levels: tuple = ()
     if textures is not None:

@@ -2,7 +2,8 @@
 
 Vertex normals, when missing, are the area-weighted average of the adjacent face normals
 (the cross product of two edges has length twice the face area, so summing unnormalised cross
-products weights by area).
+products weights by area). A zero normal would remove all direct light at its vertex, so given
+normals must be non-zero, and computed ones must not cancel at a vertex that a face with area uses.
 """
 
 from __future__ import annotations
@@ -43,18 +44,47 @@ class MeshError(ValueError):
     """A mesh that cannot be used: the message names the source and the problem."""
 
 
+_CANCELLED = 1e-6  # |Σ face normals| / Σ |face normals| under which a vertex's faces count as cancelling
+
+
 def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals float32 [V, 3] from positions [V, 3] and faces [F, 3]."""
+    """Area-weighted vertex normals float32 [V, 3] from positions [V, 3] and faces [F, 3]; (0, 1, 0) at
+    vertices without an area-weighted normal (unused, only on zero-area faces, or cancelled)."""
+    n, _ = _face_normal_sums(positions, faces)
+    return _normalise(n)
+
+
+def _face_normal_sums(positions, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Per vertex, the sum of the adjacent faces' cross products float64 [V, 3] (twice the area-weighted
+    normal) and the sum of their lengths [V] (twice the adjacent area)."""
     p = np.asarray(positions, np.float64)
     f = np.asarray(faces, np.int64)
     face_n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
-    n = np.zeros_like(p)
+    face_area = np.linalg.norm(face_n, axis=1)
+    n, area = np.zeros_like(p), np.zeros(len(p))
     for k in range(3):
         np.add.at(n, f[:, k], face_n)
+        np.add.at(area, f[:, k], face_area)
+    return n, area
+
+
+def _normalise(n: np.ndarray) -> np.ndarray:
+    """Rows of ``n`` [V, 3] scaled to unit length, float32; (0, 1, 0) where a row is zero."""
     length = np.linalg.norm(n, axis=1, keepdims=True)
-    fallback = np.array([0.0, 1.0, 0.0])
-    n = np.where(length > 0, n / np.maximum(length, 1e-300), fallback)
-    return n.astype(np.float32)
+    return np.where(length > 0, n / np.maximum(length, 1e-300), [0.0, 1.0, 0.0]).astype(np.float32)
+
+
+def _computed_normals(p: np.ndarray, f: np.ndarray, source: str) -> np.ndarray:
+    """Area-weighted normals [V, 3]; raises where the faces around a vertex that a face of non-zero area
+    uses cancel (e.g. two faces back to back sharing vertices), as its normal, and so its light, is undefined."""
+    n, area = _face_normal_sums(p, f)
+    cancelled = (area > 0) & (np.linalg.norm(n, axis=1) <= _CANCELLED * area)
+    if cancelled.any():
+        raise MeshError(
+            f"{source}: normals: vertex {int(np.argmax(cancelled))} has no area-weighted normal: the faces "
+            f"around it cancel (faces back to back sharing vertices?)"
+        )
+    return _normalise(n)
 
 
 def make_mesh(
@@ -70,8 +100,10 @@ def make_mesh(
 
     ``positions`` [V, 3], ``faces`` [F, 3] vertex indices, optional ``normals`` [V, 3], ``uv`` [V, 2],
     ``material_ids`` [F]. ``source`` names the file or generator in error messages.
-    Raises :class:`MeshError` for empty meshes, wrong shapes, NaN/inf coordinates and face indices
-    out of range.
+    Without ``normals``, normals are area-weighted (see :func:`vertex_normals`).
+    Raises :class:`MeshError` for empty meshes, wrong shapes, NaN/inf coordinates, face indices
+    out of range, NaN/inf or zero-length ``normals``, and (without ``normals``) a vertex of a face of
+    non-zero area whose faces' normals cancel.
     """
     p = np.asarray(positions, dtype=np.float64)
     f = np.asarray(faces)
@@ -88,13 +120,7 @@ def make_mesh(
         raise MeshError(f"{source}: {int(bad.sum())} vertices have NaN or infinite coordinates (first: vertex {int(np.argmax(bad))})")
     if f.min() < 0 or f.max() >= p.shape[0]:
         raise MeshError(f"{source}: face indices must lie in [0, {p.shape[0] - 1}], found range [{int(f.min())}, {int(f.max())}]")
-    if normals is None:
-        n = vertex_normals(p, f)
-    else:
-        n = np.asarray(normals, np.float64)
-        if n.shape != p.shape or not np.isfinite(n).all():
-            raise MeshError(f"{source}: normals must be finite with shape {list(p.shape)}, got {list(n.shape)}")
-        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+    n = _computed_normals(p, f, source) if normals is None else _given_normals(normals, p.shape, source)
     if uv is None:
         t = np.zeros((p.shape[0], 2))
     else:
@@ -114,6 +140,20 @@ def make_mesh(
         uv=jnp.asarray(t, jnp.float32),
         material_ids=jnp.asarray(m, jnp.int32),
     )
+
+
+def _given_normals(normals, shape: tuple, source: str) -> np.ndarray:
+    """``normals`` [V, 3] checked (finite, non-zero: a zero normal removes all direct light) and normalised."""
+    n = np.asarray(normals, np.float64)
+    if n.shape != shape:
+        raise MeshError(f"{source}: normals must have shape {list(shape)}, got {list(n.shape)}")
+    bad = ~np.isfinite(n).all(axis=1)
+    if bad.any():
+        raise MeshError(f"{source}: normals: vertex {int(np.argmax(bad))} has a NaN or infinite normal")
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    if (length == 0).any():
+        raise MeshError(f"{source}: normals: vertex {int(np.argmax(length[:, 0] == 0))} has a zero-length normal")
+    return n / length
 
 
 def concatenate_meshes(meshes: list[Mesh]) -> Mesh:

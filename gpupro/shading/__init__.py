@@ -1,4 +1,4 @@
-"""Shading: BRDFs and the evaluation of lights at surface points."""
+"""Shading models shared by every technique: BRDFs, light falloff and the light loop."""
 
 from gpupro.shading.brdfs import (
     ALPHA_MIN,
@@ -25,5 +25,4 @@ from gpupro.shading.light_falloff import (
     incident_light,
     spot_falloff,
 )
-from gpupro.shading.deferred import DEFERRED_INPUTS, accumulate_lights, shade_deferred, shade_surfaces
-from gpupro.shading.forward import shade_forward
+from gpupro.shading.light_loop import accumulate_lights, check_shading_inputs, default_light_chunk, shade_surfaces

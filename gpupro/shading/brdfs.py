@@ -195,7 +195,8 @@ def g1_smith_ggx(n_dot_v, alpha):
     n·v ≤ 0.
     """
     c = _f32(n_dot_v)
-    return jnp.where(c > 0, jnp.clip(c, 0.0, 1.0) * _visibility1_ggx(c, alpha), 0.0)
+    # G1 is a fraction of visible microfacets: rounding of c · Λ-terms may land an ulp above 1 (seen on GPUs).
+    return jnp.where(c > 0, jnp.clip(jnp.clip(c, 0.0, 1.0) * _visibility1_ggx(c, alpha), 0.0, 1.0), 0.0)
 
 
 def g1_smith_beckmann(n_dot_v, alpha):
@@ -205,7 +206,8 @@ def g1_smith_beckmann(n_dot_v, alpha):
     n·v ≤ 0.
     """
     c = _f32(n_dot_v)
-    return jnp.where(c > 0, jnp.clip(c, 0.0, 1.0) * _visibility1_beckmann(c, alpha), 0.0)
+    # G1 is a fraction of visible microfacets: rounding of c · Λ-terms may land an ulp above 1 (seen on GPUs).
+    return jnp.where(c > 0, jnp.clip(jnp.clip(c, 0.0, 1.0) * _visibility1_beckmann(c, alpha), 0.0, 1.0), 0.0)
 
 
 def g_smith(n_dot_l, n_dot_v, alpha, *, distribution="ggx"):

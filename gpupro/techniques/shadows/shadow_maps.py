@@ -59,6 +59,8 @@ from gpupro.numerics import einsum, matmul
 from gpupro.raster import rasterize
 from gpupro.scene.camera import Camera, look_at, perspective, to_clip
 from gpupro.scene.lights import POINT, SPOT, Lights
+from gpupro.technique import BOOLEAN, Buffer, Counter, Option, Technique, integer, number, optional, register
+from gpupro.techniques.raster.gbuffer import SURFACE
 
 NEAR_FRACTION = 0.01  # near plane of spot and cube maps, as a fraction of the light's range
 SPOT_MARGIN = np.radians(2.0)  # widens the spot frustum so the PCF kernel at the cone's rim stays inside
@@ -389,3 +391,38 @@ def _shadow_factor(maps, positions, normals, *, bias, normal_offset, pcf):
     stored = maps.depths[light, face[..., None, None], row, column]  # [P, K, pcf, pcf]
     lit = (depth[..., None, None] - bias <= stored).astype(jnp.float32)
     return jnp.where(inside, jnp.mean(lit, axis=(-2, -1)), 1.0)
+
+
+def apply(params, inputs, scene, *, count, resolution, pcf, max_distance, bias, normal_offset, cull_backfaces):
+    """Shadow maps of the first ``count`` lights, looked up at the G-buffer's points → ``shadow`` [H, W, count]."""
+    maps = build_shadow_maps(scene.lights, scene.mesh, scene.camera, count=count, resolution=resolution,
+                             max_distance=max_distance, cull_backfaces=cull_backfaces)
+    height, width = scene.camera.resolution
+    points, normals = inputs["position"].reshape(-1, 3), inputs["normal"].reshape(-1, 3)
+    visibility = shadow_factor(maps, points, normals, bias=bias, normal_offset=normal_offset, pcf=pcf)
+    return {"shadow": visibility.reshape(height, width, count)}, maps.counters
+
+
+register(Technique(
+    id="shadow_maps",
+    title="Shadow maps: orthographic (fitted to the view), spot, point-light cube maps; PCF",
+    source="Williams 1978; Reeves et al. 1987 (PCF); GPU Gems 2 ch. 17; Olsson thesis Paper III (cube maps for many lights)",
+    family="shadows",
+    status="implemented",
+    apply=apply,
+    inputs=tuple(b for b in SURFACE if b.name in ("position", "normal")),
+    outputs=(Buffer("shadow", "visibility in [0, 1] of each of the first `count` lights, [H, W, count]", ""),),
+    options=(
+        Option("count", 1, integer(1), "lights with shadow maps: the first `count` (order shadow casters first)"),
+        Option("resolution", 512, integer(1), "texels per side of every map"),
+        Option("pcf", 3, integer(1, odd=True), "box PCF kernel width in texels (1: one comparison)"),
+        Option("max_distance", None, optional(number(0.0, strict_lo=True)),
+               "caps the camera's far plane when fitting directional maps (world units); none: no cap"),
+        Option("bias", DEFAULT_BIAS, number(0.0), "constant window-depth bias (a step function of it: static)"),
+        Option("normal_offset", DEFAULT_NORMAL_OFFSET, number(0.0),
+               "receiver offset along its normal, in units of pcf/2 texels (a step function of it: static)"),
+        Option("cull_backfaces", False, BOOLEAN, "cull back faces when drawing the maps (closed scenes only)"),
+    ),
+    counters=(Counter("shadow_maps_rendered", "maps drawn (6 per point light, 1 per spot or directional light)"),),
+    example_options={"resolution": 32},
+))

@@ -1,13 +1,11 @@
-"""Brute-force deferred shading: every light evaluated at every G-buffer pixel.
+"""The light loop: every light evaluated at every surface sample, shared by all shading techniques.
 
-Sources
--------
-- Olsson's thesis (seed), overview chapter, sec. 2 "Real-Time Many-Light Shading": deferred shading
-  rasterizes surface attributes into G-buffers, then shades every sample from them; its measure of
-  efficiency, *lighting computations* (the sum over samples of the lights evaluated there), is
-  reported as a counter. Paper I, sec. 2, step 4, is the per-pixel loop over lights; here the loop
-  runs over all lights with no culling, which makes this module the reference that every many-light
-  technique (tiled, clustered, hierarchical) is checked against.
+Source: Olsson's thesis (seed), overview chapter, sec. 2 "Real-Time Many-Light Shading", and Paper I,
+sec. 2, step 4: the per-sample loop over lights. Brute-force deferred and forward shading run it over
+all lights; the many-light techniques (tiled, clustered, light lists) run the same BRDF and falloff
+code over their culled lists, so reference and acceleration cannot drift apart. Its measure of
+efficiency, *lighting computations* (the sum over samples of the lights evaluated there), is reported
+as a counter.
 
 Equations (per covered pixel with position x, unit normal n, base colour c, roughness, metallic m,
 emission L_e; eye position e; lights i = 0 … N−1)
@@ -34,9 +32,6 @@ import jax.numpy as jnp
 from gpupro.scene.lights import POINT, Lights
 from gpupro.shading.brdfs import DISTRIBUTIONS, brdf
 from gpupro.shading.light_falloff import incident_light
-
-DEFERRED_INPUTS = ("coverage", "position", "normal", "base_color", "roughness", "metallic", "emission")
-"""G-buffer entries that :func:`shade_deferred` reads."""
 
 _VIEW_LENGTH_MIN = 1e-12  # floor under |e − x| so v is finite when a point sits at the eye
 
@@ -109,11 +104,13 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     return total
 
 
-def _check_options(lights: Lights, shadow_shape, image_shape, *, distribution: str, light_chunk: int | None, caller: str):
-    """Raises ``ValueError`` naming the problem for a bad distribution, chunk or shadow shape."""
+def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribution: str, light_chunk: int | None,
+                        caller: str):
+    """Raises ``ValueError`` naming ``caller`` and the problem for a bad distribution, light chunk or
+    shadow shape (``shadow_shape`` None or [H, W, K] with K ≤ N; ``image_shape`` (H, W))."""
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"{caller}: distribution must be one of {DISTRIBUTIONS}, got {distribution!r}")
-    if light_chunk is not None and (not isinstance(light_chunk, int) or light_chunk < 1):
+    if light_chunk is not None and (not isinstance(light_chunk, int) or isinstance(light_chunk, bool) or light_chunk < 1):
         raise ValueError(f"{caller}: light_chunk must be a positive int, got {light_chunk!r}")
     if shadow_shape is not None:
         if len(shadow_shape) != 3 or tuple(shadow_shape[:2]) != tuple(image_shape) or shadow_shape[2] > lights.count:
@@ -129,7 +126,7 @@ def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, 
 
     ``coverage`` [H, W]; ``position``, ``normal``, ``base_color``, ``emission`` [H, W, 3];
     ``roughness``, ``metallic`` [H, W]; ``shadow`` None or [H, W, K]; other arguments and the result
-    ``(hdr [H, W, 3], counters)`` as in :func:`shade_deferred`. Arguments are not checked.
+    ``(hdr [H, W, 3], counters)`` as in :func:`gpupro.techniques.lights.deferred.shade_deferred`. Arguments are not checked.
     """
     height, width = jnp.shape(coverage)
 
@@ -155,43 +152,3 @@ def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, 
         "lights": jnp.int32(lights.count),
     }
     return hdr, counters
-
-
-def shade_deferred(gbuffer: dict, lights: Lights, eye, *, ambient=(0.0, 0.0, 0.0), distribution: str = "ggx",
-                   light_chunk: int | None = None, shadow=None, background=(0.0, 0.0, 0.0)):
-    """Deferred shading of a G-buffer by brute force over all lights (the many-light reference).
-
-    ``gbuffer``: dict with at least ``coverage`` [H, W] (1 covered, 0 empty), ``position`` [H, W, 3]
-    (world units), ``normal`` [H, W, 3] (unit, facing the camera), ``base_color`` [H, W, 3] (linear
-    RGB), ``roughness``, ``metallic`` [H, W], ``emission`` [H, W, 3] (radiance), as produced by
-    :func:`gpupro.raster.gbuffer_from_fragments`.
-    ``lights``: N lights (:class:`gpupro.scene.Lights`; N = 0 gives emission + ambient only).
-    ``eye`` [3]: camera position (world units).
-    ``ambient`` [3]: constant ambient radiance, reflected as ambient · (1 − metallic) · base_color.
-    ``shadow``: None, or float32 [H, W, K] visibility in [0, 1] of the FIRST K lights (K ≤ N; put
-    shadow-casting lights first); lights K … N−1 are unshadowed.
-    ``background`` [3]: radiance of pixels with coverage 0.
-    ``distribution`` (static): microfacet distribution, "ggx" or "beckmann".
-    ``light_chunk`` (static): lights per scan step; peak memory is [H·W, light_chunk, 3] floats;
-    None picks :func:`default_light_chunk` for the backend.
-
-    Returns ``(hdr, counters)``: ``hdr`` float32 [H, W, 3] radiance; ``counters``:
-    ``lighting_computations`` (covered pixels × N, float32 so it cannot wrap) and ``lights`` (N, int32).
-    Differentiable in the lights' colours, positions and ranges, the G-buffer's material values and
-    positions, ``eye``, ``ambient``, ``shadow`` and ``background``.
-    """
-    missing = [key for key in DEFERRED_INPUTS if key not in gbuffer]
-    if missing:
-        raise ValueError(f"shade_deferred: G-buffer lacks {missing}; it needs {list(DEFERRED_INPUTS)}")
-    coverage = gbuffer["coverage"]
-    if coverage.ndim != 2:
-        raise ValueError(f"shade_deferred: G-buffer coverage must have shape [H, W], got {list(coverage.shape)}")
-    shape = coverage.shape
-    for key, tail in (("position", (3,)), ("normal", (3,)), ("base_color", (3,)), ("roughness", ()),
-                      ("metallic", ()), ("emission", (3,))):
-        if gbuffer[key].shape != shape + tail:
-            raise ValueError(f"shade_deferred: G-buffer {key} must have shape {list(shape + tail)}, got {list(gbuffer[key].shape)}")
-    _check_options(lights, None if shadow is None else jnp.shape(shadow), shape,
-                          distribution=distribution, light_chunk=light_chunk, caller="shade_deferred")
-    return shade_surfaces(*(gbuffer[key] for key in DEFERRED_INPUTS), lights, eye, ambient=ambient, shadow=shadow,
-                          background=background, distribution=distribution, light_chunk=light_chunk)

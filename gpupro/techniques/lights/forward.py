@@ -9,22 +9,25 @@ Sources
 
 In this software pipeline the rasterizer resolves visibility first (``triangle_id`` and
 perspective-correct barycentrics with their screen derivatives per pixel), so "forward" means:
-reconstruct the visible surface at each pixel (:func:`gpupro.raster.gbuffer.surface_from_fragments`,
-the same reconstruction as the G-buffer pass, textures included) and shade it at once with the light
-loop of deferred shading (:func:`gpupro.shading.deferred.accumulate_lights`), never storing the
-attributes as pipeline buffers.
+reconstruct the visible surface at each pixel (:func:`gpupro.raster.surface_from_fragments`, the same
+reconstruction as the G-buffer pass, textures included) and shade it at once with the light loop of
+deferred shading (:mod:`gpupro.shading.light_loop`), never storing the attributes as pipeline buffers.
+Its ``reference`` is therefore deferred shading: the two must give the same image.
 """
 
 from __future__ import annotations
 
 import jax.numpy as jnp
 
-from gpupro.raster.gbuffer import surface_from_fragments
-from gpupro.raster.rasterize import Fragments
+from gpupro.raster import Fragments, surface_from_fragments
 from gpupro.scene.lights import Lights
 from gpupro.scene.materials import Materials
 from gpupro.scene.mesh import Mesh
-from gpupro.shading.deferred import _check_options, shade_surfaces
+from gpupro.shading.light_loop import check_shading_inputs, shade_surfaces
+from gpupro.technique import Technique, register
+from gpupro.techniques.lights.deferred import HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
+from gpupro.techniques.raster.gbuffer import fragments_from
+from gpupro.techniques.raster.raster import FRAGMENTS
 
 
 def shade_forward(fragments: Fragments, mesh: Mesh, materials: Materials, lights: Lights, eye, *,
@@ -36,7 +39,7 @@ def shade_forward(fragments: Fragments, mesh: Mesh, materials: Materials, lights
     -1 where empty, and ``barycentrics``, ``bary_dx``, ``bary_dy`` float32 [H, W, 3]); ``mesh`` and
     ``materials`` as in the scene; ``lights`` (N lights), ``eye`` [3], ``ambient`` [3], ``shadow``
     (None or [H, W, K], the first K ≤ N lights), ``background`` [3], ``distribution`` and
-    ``light_chunk`` (static) as in :func:`gpupro.shading.shade_deferred`.
+    ``light_chunk`` (static) as in :func:`gpupro.techniques.lights.deferred.shade_deferred`.
     Returns ``(hdr float32 [H, W, 3], counters)`` with the counters of ``shade_deferred``.
     Differentiable in the lights, material values, vertex positions and normals, ``eye`` and ``ambient``.
     """
@@ -46,11 +49,35 @@ def shade_forward(fragments: Fragments, mesh: Mesh, materials: Materials, lights
     for name in ("barycentrics", "bary_dx", "bary_dy"):
         if jnp.shape(getattr(fragments, name)) != shape + (3,):
             raise ValueError(f"shade_forward: {name} must have shape {list(shape + (3,))}, got {list(jnp.shape(getattr(fragments, name)))}")
-    _check_options(lights, None if shadow is None else jnp.shape(shadow), shape,
-                   distribution=distribution, light_chunk=light_chunk, caller="shade_forward")
+    check_shading_inputs(lights, None if shadow is None else jnp.shape(shadow), shape,
+                         distribution=distribution, light_chunk=light_chunk, caller="shade_forward")
     s = surface_from_fragments(fragments, mesh, materials, jnp.asarray(eye, jnp.float32))
     return shade_surfaces(
         s["coverage"], s["position"], s["normal"], s["base_color"], s["roughness"], s["metallic"], s["emission"],
         lights, eye, ambient=ambient, shadow=shadow, background=background, distribution=distribution,
         light_chunk=light_chunk,
     )
+
+
+def apply(params, inputs, scene, *, distribution, light_chunk):
+    """Forward shading of the rasterizer's fragments by all of ``scene.lights`` → ``hdr`` [H, W, 3]."""
+    hdr, counters = shade_forward(fragments_from(inputs), scene.mesh, scene.materials, scene.lights, scene.camera.eye,
+                                  ambient=params["ambient"], distribution=distribution, light_chunk=light_chunk,
+                                  shadow=inputs.get("shadow"), background=params["background"])
+    return {"hdr": hdr}, counters
+
+
+register(Technique(
+    id="forward",
+    title="Forward shading from fragments, brute-force light loop",
+    source="Olsson thesis, Paper I sec. 3 (tiled forward shading, untiled here)",
+    family="lights",
+    status="implemented",
+    apply=apply,
+    inputs=FRAGMENTS + (SHADOW,),
+    outputs=(HDR,),
+    options=SHADING_OPTIONS,
+    params=SHADING_PARAMS,
+    counters=SHADING_COUNTERS,
+    reference="deferred",
+))

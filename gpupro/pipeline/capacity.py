@@ -1,0 +1,73 @@
+"""Never a frame with missing lights or triangles: grow overflowing capacities and render again.
+
+Techniques declare each fixed capacity with the counter that reports its overflow
+(:class:`gpupro.technique.Capacity`). A *lossy* capacity drops what does not fit, so a frame whose
+counter is above zero is wrong: the entry points (``gp.render``, ``gpupro run``, ``gpupro fit``) check
+the counters after each frame, grow every capacity that overflowed (to the ``needed`` counter's value
+where the technique reports one, else to twice its size) and render again, saying so once.
+Capacities that are not lossy only bound the work per step and are left alone.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from gpupro.pipeline.graph import Pipeline
+
+MAX_ROUNDS = 24
+"""Growth rounds before giving up (each at least doubles a capacity: 2^24 × the default)."""
+
+
+def overflows(pipeline: Pipeline, counters: Mapping[str, Mapping[str, Any]]) -> list[tuple[str, Any, int]]:
+    """``(pass name, capacity, overflow count)`` for every lossy capacity whose counter is above zero
+    (the largest value over frames, for counters batched over a camera path)."""
+    found = []
+    for p in pipeline.passes:
+        if p.technique is None or p.name not in counters:
+            continue
+        for capacity in p.technique.capacities:
+            count = int(np.max(np.asarray(counters[p.name].get(capacity.counter, 0))))
+            if capacity.lossy and count > 0:
+                found.append((p.name, capacity, count))
+    return found
+
+
+def grown(pipeline: Pipeline, counters: Mapping[str, Mapping[str, Any]], found) -> Pipeline:
+    """``pipeline`` with every capacity in ``found`` (from :func:`overflows`) grown."""
+    for name, capacity, _ in found:
+        current = pipeline[name].options[capacity.option]
+        needed = 0 if capacity.needed is None else int(np.max(np.asarray(counters[name][capacity.needed])))
+        pipeline = pipeline.with_options(name, **{capacity.option: max(2 * current, needed)})
+    return pipeline
+
+
+def capacities(pipeline: Pipeline) -> dict[str, dict[str, Any]]:
+    """The capacity options in use, ``{pass name: {option: value}}`` (for reports)."""
+    return {p.name: {c.option: p.options[c.option] for c in p.technique.capacities}
+            for p in pipeline.passes if p.technique is not None and p.technique.capacities}
+
+
+def render_without_overflow(pipeline: Pipeline, render: Callable[[Pipeline], dict], *, log=sys.stderr) -> tuple[Pipeline, dict]:
+    """Calls ``render(pipeline)`` (→ buffers with ``"counters"``) until no lossy capacity overflows.
+
+    Returns the pipeline that was used last and its buffers. Writes one line to ``log`` per growth
+    (``None``: silent). Raises ``RuntimeError`` naming the capacities if :data:`MAX_ROUNDS` is reached.
+    """
+    for _ in range(MAX_ROUNDS):
+        buffers = render(pipeline)
+        found = overflows(pipeline, buffers["counters"])
+        if not found:
+            return pipeline, buffers
+        bigger = grown(pipeline, buffers["counters"], found)
+        if log is not None:
+            for name, capacity, count in found:
+                print(f"{name}: {capacity.counter} = {count} (capacity {capacity.option} = "
+                      f"{pipeline[name].options[capacity.option]}); growing it to "
+                      f"{bigger[name].options[capacity.option]} and rendering again", file=log, flush=True)
+        pipeline = bigger
+    raise RuntimeError(f"capacities still overflow after {MAX_ROUNDS} growths: "
+                       + ", ".join(f"{n}.{c.option}" for n, c, _ in found))

@@ -1,0 +1,97 @@
+"""The visible surface at each pixel, reconstructed from rasterized fragments.
+
+Shared by the G-buffer pass and by every technique that shades or samples surfaces without storing a
+G-buffer (forward shading, reflective shadow maps, light propagation volumes): attributes come from
+:func:`gpupro.raster.interpolate`, materials from the material id of the visible triangle, base colour
+from trilinear texture sampling with the exact uv derivatives.
+
+Normals are flipped to face the viewer (two-sided surfaces): a triangle seen from behind is shaded on
+the side the viewer sees.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from gpupro.raster.interpolate import interpolate
+from gpupro.raster.rasterize import Fragments, rasterize
+from gpupro.raster.texture import sample_trilinear
+from gpupro.scene.camera import to_clip
+from gpupro.scene.materials import Materials
+from gpupro.scene.mesh import Mesh
+from gpupro.scene.scene import Scene
+
+SURFACE_BUFFERS = (
+    "coverage", "material_id", "position", "normal", "face_normal", "uv", "base_color", "roughness", "metallic",
+    "emission", "dpdx", "dpdy", "duvdx", "duvdy",
+)
+"""The keys of :func:`surface_from_fragments`' result."""
+
+
+def normalize(v: jax.Array) -> jax.Array:
+    """``v / |v|`` along the last axis (any shape [..., C]); zero vectors stay zero."""
+    length = jnp.linalg.norm(v, axis=-1, keepdims=True)
+    return v / jnp.where(length > 0, length, 1.0)
+
+
+def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Materials, eye: jax.Array) -> dict:
+    """Surface attributes of the visible triangles, as seen from ``eye`` [3] (normals face it).
+
+    ``fragments`` needs ``triangle_id`` [H, W] and ``barycentrics``, ``bary_dx``, ``bary_dy``
+    [H, W, 3]. Returns a dict with the keys of :data:`SURFACE_BUFFERS`, empty pixels holding zeros
+    (material id -1): ``coverage`` [H, W] 1 or 0; ``material_id`` int32 [H, W]; ``position`` [H, W, 3]
+    world; ``normal`` [H, W, 3] interpolated unit normal; ``face_normal`` [H, W, 3]; ``uv`` [H, W, 2];
+    ``base_color`` [H, W, 3] (material colour × texture); ``roughness``, ``metallic`` [H, W];
+    ``emission`` [H, W, 3]; ``dpdx``, ``dpdy`` [H, W, 3]; ``duvdx``, ``duvdy`` [H, W, 2].
+    """
+    tri = fragments.triangle_id
+    covered = tri >= 0
+    mask = covered[..., None]
+    face = mesh.faces[jnp.where(covered, tri, 0)]  # [H, W, 3]
+
+    position = interpolate(mesh.positions, mesh.faces, fragments)
+    uv = interpolate(mesh.uv, mesh.faces, fragments)
+    corners = mesh.positions[face]
+    face_normal = normalize(jnp.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]))
+    facing = jnp.sum(face_normal * (eye - position.value), axis=-1, keepdims=True)
+    sign = jnp.where(facing < 0, -1.0, 1.0)
+    normal = normalize(interpolate(mesh.normals, mesh.faces, fragments).value) * sign
+
+    material = jnp.where(covered, mesh.material_ids[jnp.where(covered, tri, 0)], -1)
+    m = jnp.maximum(material, 0)
+    base_color = materials.base_color[m]
+    if materials.textures:
+        height, width = tri.shape
+        flat = lambda x: x.reshape(height * width, -1)
+        texture = materials.texture_index[m]
+        texel = sample_trilinear(materials.textures, jnp.maximum(texture, 0).reshape(-1), flat(uv.value), flat(uv.dx), flat(uv.dy))
+        base_color = base_color * jnp.where((texture >= 0)[..., None], texel.reshape(height, width, -1), 1.0)
+
+    zero = lambda x: jnp.where(mask if x.ndim == 3 else covered, x, 0.0)
+    return {
+        "coverage": covered.astype(jnp.float32),
+        "material_id": material,
+        "position": position.value,
+        "normal": zero(normal),
+        "face_normal": zero(face_normal * sign),
+        "uv": uv.value,
+        "base_color": zero(base_color),
+        "roughness": zero(materials.roughness[m]),
+        "metallic": zero(materials.metallic[m]),
+        "emission": zero(materials.emission[m]),
+        "dpdx": position.dx,
+        "dpdy": position.dy,
+        "duvdx": uv.dx,
+        "duvdy": uv.dy,
+    }
+
+
+def rasterize_scene(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> Fragments:
+    """Rasterizes ``scene``'s mesh from its camera (:func:`gpupro.raster.rasterize`, at the camera's resolution).
+
+    ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (tile, capacities).
+    """
+    camera = scene.camera
+    clip = to_clip(scene.mesh.positions, camera.view_projection())
+    return rasterize(clip, scene.mesh.faces, resolution=camera.resolution, cull_backfaces=cull_backfaces, **raster_options)

@@ -1,0 +1,1 @@
+"""Post-processing passes: exposure, tone mapping and sRGB encoding."""

@@ -1,0 +1,198 @@
+"""Generic tests over the technique registry (as dm_pix tests every function): a technique registered in
+``gpupro/techniques/`` gets all of these without a line of its own.
+
+- its specification is complete and its pass function takes its options keyword-only, with no defaults
+  of its own (the defaults live in the specification only);
+- every declared continuous parameter passes ``check_grads``;
+- jitted and un-jitted (``jax.disable_jit()``) frames agree;
+- a technique with a ``reference`` agrees with it on the shared scenes;
+- every capacity, forced small, reports its overflow, and the frame still equals the reference (the
+  entry points grow lossy capacities and render again);
+- its reference page lists every option and parameter.
+"""
+
+import inspect
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import gpupro as gp
+from gpupro.catalogue import reference_page
+from gpupro.pipeline import make_pass, pipeline_for
+from gpupro.pipeline.capacity import render_without_overflow
+from gpupro.technique import registered
+
+TECHNIQUES = registered()
+IDS = sorted(TECHNIQUES)
+RES = (24, 24)
+
+
+def _scenes():
+    cornell = gp.scenes.cornell_box(resolution=RES)
+    lo, hi = cornell.bounds()
+    lights = gp.scene.uniform_in_box(jax.random.PRNGKey(1), 12, lo, hi, light_range=2.5, intensity=2.0)
+    # A sphere on an open background, lit by a spot and a point light: empty pixels and both light kinds.
+    sphere = gp.scenes.sphere(resolution=RES)
+    spot = gp.scene.make_lights([gp.scene.SPOT, gp.scene.POINT], position=[[0.0, 2.5, 2.5], [-2.0, 1.0, 1.5]],
+                                direction=[[0.0, -0.7, -0.7], [0.0, -1.0, 0.0]], color=[[6.0, 5.0, 4.0], [1.0, 2.0, 3.0]],
+                                range=[8.0, 6.0], inner_angle_degrees=[15.0, 30.0], outer_angle_degrees=[30.0, 45.0])
+    return {"cornell": cornell.replace(lights=gp.scene.lights.concatenate_lights([cornell.lights, lights])),
+            "sphere": sphere.replace(lights=spot)}
+
+
+SCENES = _scenes()
+
+
+def _example(technique_id, outputs=None, **options):
+    """``technique_id`` with its example options, completed by the standard producers of its inputs."""
+    outputs = outputs or tuple(b.name for b in TECHNIQUES[technique_id].outputs)
+    return pipeline_for(technique_id, example=True, outputs=outputs, **options)
+
+
+def _assert_same(actual: dict, expected: dict, names, rtol=1e-4):
+    """Integer buffers equal; float buffers within ``rtol`` of the expected buffer's peak magnitude."""
+    for name in names:
+        a, e = np.asarray(actual[name]), np.asarray(expected[name])
+        assert a.shape == e.shape, name
+        if np.issubdtype(e.dtype, np.integer):
+            np.testing.assert_array_equal(a, e, err_msg=name)
+        else:
+            peak = max(float(np.max(np.abs(e))), 1e-6)
+            np.testing.assert_allclose(a, e, rtol=0, atol=rtol * peak, err_msg=name)
+
+
+def test_the_registry_holds_the_foundation():
+    assert {"raster", "raster_reference", "gbuffer", "deferred", "forward", "shadow_maps", "post"} <= set(IDS)
+
+
+def check_specification(t):
+    """What every specification must say (shared with the contributor guide's test)."""
+    assert t.title and t.source and t.family
+    doc = inspect.getdoc(inspect.getmodule(t.apply))
+    assert doc and len(doc) > 200, "the module docstring names the source and restates the equations"
+    assert t.reference is None or t.reference in TECHNIQUES
+    for b in t.outputs:
+        assert b.doc, b.name
+    for p in t.params:
+        assert p.unit and p.doc and p.lower <= np.min(p.default) and np.max(p.default) <= p.upper, p.name
+    for o in t.options:
+        assert o.doc and o.check(o.default), o.name
+
+
+@pytest.mark.parametrize("technique_id", IDS)
+def test_specification_is_complete(technique_id):
+    t = TECHNIQUES[technique_id]
+    check_specification(t)
+    assert t.module.startswith(f"gpupro.techniques.{t.family}."), "a technique lives in gpupro/techniques/<family>/"
+
+
+@pytest.mark.parametrize("technique_id", IDS)
+def test_options_are_keyword_only_and_defaults_live_in_the_specification(technique_id):
+    t = TECHNIQUES[technique_id]
+    parameters = list(inspect.signature(t.apply).parameters.values())
+    positional = [p.name for p in parameters if p.kind == p.POSITIONAL_OR_KEYWORD]
+    assert positional == ["params", "inputs", "scene"] + (["state"] if t.init_state else [])
+    keyword = {p.name: p for p in parameters if p.kind == p.KEYWORD_ONLY}
+    assert set(keyword) == {o.name for o in t.options}
+    assert all(p.default is p.empty for p in keyword.values()), "defaults are the specification's, not the signature's"
+
+
+@pytest.mark.parametrize("technique_id", IDS)
+def test_reference_page_lists_every_option_and_parameter(technique_id):
+    t = TECHNIQUES[technique_id]
+    page = reference_page(technique_id)
+    for name in [o.name for o in t.options] + [p.name for p in t.params] + [b.name for b in t.outputs]:
+        assert f"`{name}`" in page
+
+
+DIFFERENTIABLE = [(t.id, p.name) for t in TECHNIQUES.values() for p in t.params if not p.discontinuous]
+
+
+@pytest.mark.parametrize("technique_id, name", DIFFERENTIABLE, ids=[f"{t}.{p}" for t, p in DIFFERENTIABLE])
+def test_declared_parameters_have_correct_gradients(technique_id, name):
+    pipeline = _example(technique_id)
+    params = pipeline.init_params()
+    # Away from zero, where tone curves and clamps have kinks.
+    params[technique_id][name] = params[technique_id][name] + 0.3
+    output = next(b.name for b in TECHNIQUES[technique_id].outputs if b.image)
+    checked = gp.check_grads(pipeline, params, SCENES["sphere"], paths=[f"params.{technique_id}.{name}"],
+                             output=output, eps=1e-2, rtol=0.05)
+    assert abs(checked[f"params.{technique_id}.{name}"][0]) > 1e-4, "the parameter changes the output"
+
+
+@pytest.mark.parametrize("technique_id", IDS)
+def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id):
+    pipeline = _example(technique_id)
+    params, scene = pipeline.init_params(), SCENES["sphere"]
+    technique_pass = pipeline[technique_id]
+    wired = technique_pass.inputs + tuple(b for b in technique_pass.optional if b in pipeline.buffers)
+    inputs = pipeline(params, scene, outputs=wired) if wired else {}  # upstream passes run compiled
+    run = lambda buffers: technique_pass.run(params.get(technique_id), buffers, scene)[:2]
+    jitted, counters = jax.jit(run)(inputs)
+    with jax.disable_jit():
+        eager, _ = run(inputs)
+    _assert_same(jitted, eager, technique_pass.outputs)
+    missing = {c.name for c in TECHNIQUES[technique_id].counters} - set(counters)
+    assert not missing, f"declared counters {sorted(missing)} are not reported"
+
+
+WITH_REFERENCE = [(t.id, scene) for t in TECHNIQUES.values() if t.reference for scene in SCENES]
+
+
+@pytest.mark.parametrize("technique_id, scene", WITH_REFERENCE, ids=[f"{t}-{s}" for t, s in WITH_REFERENCE])
+def test_technique_equals_its_reference(technique_id, scene):
+    reference = TECHNIQUES[technique_id].reference
+    shared = [b.name for b in TECHNIQUES[technique_id].outputs if b.name in {o.name for o in TECHNIQUES[reference].outputs}]
+    assert shared, "a reference produces the same buffers"
+    fast, slow = _example(technique_id, outputs=shared), _example(reference, outputs=shared)
+    _assert_same(fast(fast.init_params(), SCENES[scene]), slow(slow.init_params(), SCENES[scene]), shared)
+
+
+CAPACITIES = [(t.id, c) for t in TECHNIQUES.values() for c in t.capacities]
+
+
+@pytest.mark.parametrize("technique_id, capacity", CAPACITIES, ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
+def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
+    t = TECHNIQUES[technique_id]
+    scene = SCENES["cornell"]
+    small = _example(technique_id, **{capacity.option: capacity.small})
+    expected_pipeline = _example(t.reference or technique_id)
+    expected = expected_pipeline(expected_pipeline.init_params(), scene)
+    frame = small(small.init_params(), scene)
+    assert int(frame["counters"][technique_id][capacity.counter]) > 0, "the overflow is reported"
+    if capacity.lossy:
+        used, frame = render_without_overflow(small, lambda p: p(p.init_params(), scene), log=None)
+        assert used[technique_id].options[capacity.option] > capacity.small
+    _assert_same(frame, expected, [b.name for b in t.outputs if b.name in expected])
+
+
+def test_option_values_are_checked_by_type():
+    with pytest.raises(ValueError, match=r"cull_backfaces: expected true or false, got 'no'"):
+        make_pass("raster", cull_backfaces="no")
+    with pytest.raises(ValueError, match=r"cull_backfaces: expected true or false, got 0"):
+        make_pass("raster", cull_backfaces=0)
+    with pytest.raises(ValueError, match=r"tile: expected an integer >= 1, got '8'"):
+        make_pass("raster", tile="8")
+    with pytest.raises(ValueError, match=r"chunk_batch: expected an integer >= 1, or none, got -1"):
+        make_pass("raster", chunk_batch=-1)
+    with pytest.raises(ValueError, match=r"exposure: expected finite numbers"):
+        make_pass("post", params={"exposure": float("nan")})
+    with pytest.raises(ValueError, match=r"ambient: expected values in \[0.0, inf\]"):
+        make_pass("deferred", params={"ambient": [-1.0, 0.0, 0.0]})
+    with pytest.raises(ValueError, match=r"ambiant: unknown parameter of technique 'deferred' \(parameters: ambient, background\)"):
+        make_pass("deferred", params={"ambiant": [0.0, 0.0, 0.0]})
+
+
+def test_optional_inputs_are_wired_only_when_produced():
+    plain = gp.default_pipeline()
+    shadowed = gp.complete([make_pass("shadow_maps", resolution=32), make_pass("deferred"), make_pass("post")],
+                           outputs=("hdr",))
+    assert "shadow" not in plain["deferred"].inputs and "shadow" in plain["deferred"].optional
+    assert "shadow: " not in plain.describe() and "normal, shadow -> hdr" not in plain.describe()
+    assert [p.name for p in shadowed.passes].index("shadow_maps") < [p.name for p in shadowed.passes].index("deferred")
+    a = np.asarray(plain(plain.init_params(), SCENES["cornell"])["hdr"])
+    b = np.asarray(shadowed(shadowed.init_params(), SCENES["cornell"])["hdr"])
+    assert not np.allclose(a, b) and (b <= a * (1 + 1e-5) + 1e-6).all()
+    assert jnp.shape(a) == jnp.shape(b)
