@@ -177,7 +177,7 @@ LIGHT_KEYS = {
 """Keys of ``[[lights.point]]``, ``[[lights.spot]]`` and ``[[lights.directional]]`` entries: only those
 the kind uses, so that e.g. a point light's ``direction`` is refused rather than ignored."""
 
-GENERATOR_KEYS = {"uniform_in_box": {"count", "range", "intensity", "seed", "white", "box_lo", "box_hi"},
+GENERATOR_KEYS = {"uniform_in_box": {"count", "range", "intensity", "seed", "white", "box_lo", "box_hi", "spot_fraction"},
                   "along_path": {"count", "range", "intensity", "seed", "white", "path", "offset"}}
 """The ``[lights]`` keys each generator reads; "scene" and "none" read none of them, so
 ``--set lights.count=64`` on a config whose lights are the scene's is refused, not ignored."""
@@ -197,7 +197,7 @@ SCHEMA: dict[str, Any] = {
                "range": _number(0.0, strict_lo=True), "intensity": _number(0.0),
                "seed": _integer(0, MAX_SEED, "jax.random.PRNGKey keeps 32 bits"), "white": _boolean,
                "keep_scene_lights": _boolean, "box_lo": _vector(3), "box_hi": _vector(3), "path": _points,
-               "offset": _number(0.0), "point": _light_list, "spot": _light_list, "directional": _light_list},
+               "offset": _number(0.0), "spot_fraction": _number(0.0, 1.0), "point": _light_list, "spot": _light_list, "directional": _light_list},
     "pipeline": {"passes": _strings, "options": _table, "params": _table, "inputs": _table},
     "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean, "preview": _string},
     "fit": _table,
@@ -387,7 +387,7 @@ def _generated_lights(section: dict, generator: str, lo, hi):
     key = jax.random.PRNGKey(section.get("seed", 0))
     common = dict(light_range=section["range"], intensity=section.get("intensity", 1.0), white=section.get("white", False))
     if generator == "uniform_in_box":
-        return uniform_in_box(key, section["count"], lo, hi, **common)
+        return uniform_in_box(key, section["count"], lo, hi, spot_fraction=section.get("spot_fraction", 0.0), **common)
     return along_path(key, section["count"], section["path"], offset=section.get("offset", 0.0), **common)
 
 

@@ -141,7 +141,7 @@ def test_missing_config_file_is_named(tmp_path):
         load_config(tmp_path / "nothing.toml")
 
 
-@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.toml")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted(CONFIGS.rglob("*.toml")), ids=lambda p: p.name)
 def test_shipped_configs_load_and_build(path):
     config, scene, (pipeline, params) = build(path)
     assert config["name"] == path.stem

@@ -11,6 +11,7 @@ import pytest
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights, make_materials, make_mesh, no_lights, point_lights
 from gpupro.scene.light_generators import uniform_in_box
 from gpupro.raster import Fragments
+from gpupro.raster import MIN_NORMAL_DOT_VIEW
 from gpupro.shading import DIELECTRIC_F0, DISTANCE_EPSILON_SQ
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.forward import shade_forward
@@ -216,6 +217,10 @@ def numpy_gbuffer(mesh, materials, triangle_id, barycentrics, eye):
     face_normal = np.cross(p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :])
     back = np.sum(face_normal * (eye - position), axis=-1) < 0
     normal = np.where(back[..., None], -normal, normal)
+    # Normals still facing away from the eye are bent towards it (gpupro.raster.surface).
+    view = (eye - position) / np.maximum(np.linalg.norm(eye - position, axis=-1, keepdims=True), 1e-30)
+    normal = normal + np.maximum(MIN_NORMAL_DOT_VIEW - np.sum(normal * view, axis=-1, keepdims=True), 0.0) * view
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-30)
     m = np.asarray(mesh.material_ids)[np.maximum(triangle_id, 0)]
     values = {"coverage": covered * 1.0, "position": position, "normal": normal,
               **{k: np.asarray(getattr(materials, k))[m] for k in ("base_color", "roughness", "metallic", "emission")}}

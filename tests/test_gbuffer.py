@@ -122,3 +122,26 @@ def test_textured_material_multiplies_base_colour():
     material = np.asarray(g["material_id"])
     close(np.asarray(g["base_color"])[material == 0], [0.4, 0.2, 0.1], atol=1e-6)
     close(np.asarray(g["base_color"])[material == 1], [0.1, 0.2, 0.9], atol=1e-6)
+
+
+def test_silhouette_normals_are_bent_to_face_the_viewer():
+    """On a coarse smooth sphere the interpolated normal faces away from the eye near the silhouette; the
+    shading normal is bent just enough to face it, so a light at the eye reaches every covered pixel."""
+    import gpupro as gp
+    from gpupro.raster import MIN_NORMAL_DOT_VIEW, interpolate, normalize, rasterize_scene
+
+    scene = gp.scenes.sphere(segments=8, rings=4, resolution=(48, 48))
+    eye = np.asarray(scene.camera.eye)
+    g, _ = render_gbuffer(scene)
+    covered = np.asarray(g["coverage"]) > 0
+    view = np.asarray(normalize(eye - g["position"]))
+    n_dot_v = np.sum(np.asarray(g["normal"]) * view, axis=-1)[covered]
+    raw = np.asarray(normalize(interpolate(scene.mesh.normals, scene.mesh.faces, rasterize_scene(scene)).value))
+    raw_dot_v = np.sum(raw * view, axis=-1)[covered]
+    assert (raw_dot_v < 0).sum() >= 5, "the case the bend exists for"
+    assert n_dot_v.min() >= MIN_NORMAL_DOT_VIEW - 1e-4
+    unbent = raw_dot_v >= MIN_NORMAL_DOT_VIEW
+    np.testing.assert_allclose(np.asarray(g["normal"])[covered][unbent], raw[covered][unbent], atol=1e-6)
+    headlight = gp.scene.point_lights([eye], [[5.0, 5.0, 5.0]], 20.0)
+    hdr = np.asarray(gp.render(scene.replace(lights=headlight), outputs="hdr")["hdr"])
+    assert (hdr[covered].max(axis=-1) > 0).all(), "no black pixels on the silhouette"

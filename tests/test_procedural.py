@@ -234,3 +234,23 @@ def test_light_generator_errors():
     with pytest.raises(ValueError, match="light_range"):
         along_path(jax.random.key(0), 4, [[0, 0, 0], [1, 0, 0]], offset=1.0, light_range=0.0)
     assert uniform_in_box(jax.random.key(0), 0, (0, 0, 0), (1, 1, 1), light_range=1.0).count == 0
+
+
+def test_uniform_in_box_mixes_point_and_spot_lights():
+    import jax
+
+    from gpupro.scene import POINT, SPOT
+    from gpupro.scene.light_generators import SPOT_OUTER_DEGREES, uniform_in_box
+
+    lights = uniform_in_box(jax.random.PRNGKey(3), 100, [0, 0, 0], [1, 2, 3], light_range=2.0, spot_fraction=0.5)
+    kind = np.asarray(lights.kind)
+    assert (kind == SPOT).sum() == 50 and (kind == POINT).sum() == 50 and kind[0] != kind[1]
+    spots = kind == SPOT
+    direction = np.asarray(lights.direction)[spots]
+    np.testing.assert_allclose(np.linalg.norm(direction, axis=1), 1.0, atol=1e-5)
+    assert (direction[:, 1] <= 0).all()
+    outer = np.degrees(np.arccos(np.asarray(lights.cos_outer)[spots]))
+    assert (outer >= SPOT_OUTER_DEGREES[0] - 1e-3).all() and (outer <= SPOT_OUTER_DEGREES[1] + 1e-3).all()
+    assert (np.asarray(lights.cos_inner)[spots] > np.asarray(lights.cos_outer)[spots]).all()
+    only_points = uniform_in_box(jax.random.PRNGKey(3), 100, [0, 0, 0], [1, 2, 3], light_range=2.0)
+    assert (np.asarray(only_points.kind) == POINT).all()

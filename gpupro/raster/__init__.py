@@ -3,4 +3,5 @@ reconstruction of the visible surface (the building blocks of the raster, G-buff
 
 from gpupro.raster.interpolate import Interpolated, interpolate
 from gpupro.raster.rasterize import Fragments, rasterize, reference
-from gpupro.raster.surface import SURFACE_BUFFERS, normalize, rasterize_scene, surface_from_fragments
+from gpupro.raster.surface import (MIN_NORMAL_DOT_VIEW, SURFACE_BUFFERS, bend_towards_viewer, normalize, rasterize_scene,
+                                   surface_from_fragments)

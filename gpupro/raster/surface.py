@@ -6,7 +6,15 @@ G-buffer (forward shading, reflective shadow maps, light propagation volumes): a
 from trilinear texture sampling with the exact uv derivatives.
 
 Normals are flipped to face the viewer (two-sided surfaces): a triangle seen from behind is shaded on
-the side the viewer sees.
+the side the viewer sees. Near silhouettes the *interpolated* normal of a front-facing triangle can
+still point away from the viewer (its vertices' normals belong to faces turning away); every light
+would then be rejected by ``max(n·l, 0)`` together with the view-side test, leaving isolated black
+pixels. As engines do, the shading normal is bent towards the view vector v just enough to face it:
+
+    n' = normalize(n + max(0, ε − n·v) · v),   ε = :data:`MIN_NORMAL_DOT_VIEW`
+
+which leaves every normal with n·v ≥ ε unchanged and is continuous (so differentiable almost
+everywhere) in n and v.
 """
 
 from __future__ import annotations
@@ -28,11 +36,21 @@ SURFACE_BUFFERS = (
 )
 """The keys of :func:`surface_from_fragments`' result."""
 
+MIN_NORMAL_DOT_VIEW = 0.01
+"""ε: the smallest n·v a shading normal is left with (see the module docstring)."""
+
 
 def normalize(v: jax.Array) -> jax.Array:
     """``v / |v|`` along the last axis (any shape [..., C]); zero vectors stay zero."""
     length = jnp.linalg.norm(v, axis=-1, keepdims=True)
     return v / jnp.where(length > 0, length, 1.0)
+
+
+def bend_towards_viewer(normal: jax.Array, view: jax.Array, *, min_dot: float = MIN_NORMAL_DOT_VIEW) -> jax.Array:
+    """Unit normals [..., 3] bent towards the unit view vectors ``view`` [..., 3] until n·v ≥ ``min_dot``
+    (``n + max(0, min_dot − n·v) v``, normalised); normals already facing the viewer are unchanged."""
+    deficit = jnp.maximum(min_dot - jnp.sum(normal * view, axis=-1, keepdims=True), 0.0)
+    return normalize(normal + deficit * view)
 
 
 def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Materials, eye: jax.Array) -> dict:
@@ -41,7 +59,8 @@ def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     ``fragments`` needs ``triangle_id`` [H, W] and ``barycentrics``, ``bary_dx``, ``bary_dy``
     [H, W, 3]. Returns a dict with the keys of :data:`SURFACE_BUFFERS`, empty pixels holding zeros
     (material id -1): ``coverage`` [H, W] 1 or 0; ``material_id`` int32 [H, W]; ``position`` [H, W, 3]
-    world; ``normal`` [H, W, 3] interpolated unit normal; ``face_normal`` [H, W, 3]; ``uv`` [H, W, 2];
+    world; ``normal`` [H, W, 3] interpolated unit normal, bent to face ``eye``; ``face_normal`` [H, W, 3];
+    ``uv`` [H, W, 2];
     ``base_color`` [H, W, 3] (material colour × texture); ``roughness``, ``metallic`` [H, W];
     ``emission`` [H, W, 3]; ``dpdx``, ``dpdy`` [H, W, 3]; ``duvdx``, ``duvdy`` [H, W, 2].
     """
@@ -56,7 +75,8 @@ def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     face_normal = normalize(jnp.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]))
     facing = jnp.sum(face_normal * (eye - position.value), axis=-1, keepdims=True)
     sign = jnp.where(facing < 0, -1.0, 1.0)
-    normal = normalize(interpolate(mesh.normals, mesh.faces, fragments).value) * sign
+    view = normalize(eye - position.value)
+    normal = bend_towards_viewer(normalize(interpolate(mesh.normals, mesh.faces, fragments).value) * sign, view)
 
     material = jnp.where(covered, mesh.material_ids[jnp.where(covered, tri, 0)], -1)
     m = jnp.maximum(material, 0)

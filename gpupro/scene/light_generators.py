@@ -17,22 +17,45 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from gpupro.scene.lights import Lights, point_lights
+from gpupro.scene.lights import POINT, SPOT, Lights, make_lights, point_lights
 
 
-def uniform_in_box(key, n: int, lo, hi, *, light_range, intensity: float = 1.0, white: bool = False) -> Lights:
-    """``n`` point lights at positions uniform in the box ``lo`` [3] ≤ p ≤ ``hi`` [3] (world units).
+SPOT_OUTER_DEGREES = (20.0, 50.0)
+"""Outer cone half-angles of generated spot lights: uniform in this range (degrees)."""
+SPOT_INNER_FRACTION = 0.7
+"""Inner cone half-angle of generated spot lights, as a fraction of the outer one."""
+
+
+def uniform_in_box(key, n: int, lo, hi, *, light_range, intensity: float = 1.0, white: bool = False,
+                   spot_fraction: float = 0.0) -> Lights:
+    """``n`` lights at positions uniform in the box ``lo`` [3] ≤ p ≤ ``hi`` [3] (world units).
 
     ``light_range``: radius of influence (world units, scalar or [n]); ``intensity``: peak channel of
-    each colour (W/sr); ``white``: white lights instead of random hues. Returns :class:`Lights` [n].
+    each colour (W/sr); ``white``: white lights instead of random hues; ``spot_fraction``: the share of
+    spot lights (every k-th light, so point and spot lights mix across the box), each aimed at a
+    direction uniform on the lower hemisphere (y < 0) with an outer half-angle uniform in
+    :data:`SPOT_OUTER_DEGREES` and an inner one :data:`SPOT_INNER_FRACTION` of it; the rest are point
+    lights. Returns :class:`Lights` [n].
     """
     lo, hi = _vector("lo", lo), _vector("hi", hi)
     if (hi < lo).any():
         raise ValueError(f"uniform_in_box: need lo <= hi componentwise, got lo={lo.tolist()}, hi={hi.tolist()}")
+    if not 0.0 <= spot_fraction <= 1.0:
+        raise ValueError(f"uniform_in_box: spot_fraction must be in [0, 1], got {spot_fraction}")
     n = _count(n)
-    position_key, hue_key = jax.random.split(key)
+    position_key, hue_key, spot_key = jax.random.split(key, 3)
     unit = np.asarray(jax.random.uniform(position_key, (n, 3)), np.float64)
-    return point_lights(lo + unit * (hi - lo), _colors(hue_key, n, intensity, white), _range(light_range, n))
+    positions, colors, ranges = lo + unit * (hi - lo), _colors(hue_key, n, intensity, white), _range(light_range, n)
+    if spot_fraction == 0.0:
+        return point_lights(positions, colors, ranges)
+    spot = np.floor((np.arange(n) + 1) * spot_fraction) > np.floor(np.arange(n) * spot_fraction)
+    direction_key, angle_key = jax.random.split(spot_key)
+    direction = np.asarray(jax.random.normal(direction_key, (n, 3)), np.float64)
+    direction[:, 1] = -np.abs(direction[:, 1])
+    direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
+    outer = np.asarray(jax.random.uniform(angle_key, (n,), minval=SPOT_OUTER_DEGREES[0], maxval=SPOT_OUTER_DEGREES[1]))
+    return make_lights(np.where(spot, SPOT, POINT), position=positions, direction=direction, color=colors, range=ranges,
+                       inner_angle_degrees=SPOT_INNER_FRACTION * outer, outer_angle_degrees=outer)
 
 
 def along_path(

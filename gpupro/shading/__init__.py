@@ -25,4 +25,14 @@ from gpupro.shading.light_falloff import (
     incident_light,
     spot_falloff,
 )
-from gpupro.shading.light_loop import accumulate_lights, check_shading_inputs, default_light_chunk, shade_surfaces
+from gpupro.shading.light_loop import (
+    accumulate_light_lists,
+    accumulate_lights,
+    check_shading_inputs,
+    compose_radiance,
+    default_light_chunk,
+    light_radiance,
+    light_reaches,
+    shade_surfaces,
+    view_directions,
+)

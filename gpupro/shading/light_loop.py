@@ -3,7 +3,9 @@
 Source: Olsson's thesis (seed), overview chapter, sec. 2 "Real-Time Many-Light Shading", and Paper I,
 sec. 2, step 4: the per-sample loop over lights. Brute-force deferred and forward shading run it over
 all lights; the many-light techniques (tiled, clustered, light lists) run the same BRDF and falloff
-code over their culled lists, so reference and acceleration cannot drift apart. Its measure of
+code over their culled lists, so reference and acceleration cannot drift apart: the per-light term is
+one function (:func:`light_radiance`) that :func:`accumulate_lights` (all lights) and
+:func:`accumulate_light_lists` (per-group, e.g. per-tile, lists of light indices) both call. Its measure of
 efficiency, *lighting computations* (the sum over samples of the lights evaluated there), is reported
 as a counter.
 
@@ -29,7 +31,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from gpupro.scene.lights import POINT, Lights
+from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights
 from gpupro.shading.brdfs import DISTRIBUTIONS, brdf
 from gpupro.shading.light_falloff import incident_light
 
@@ -59,6 +61,37 @@ def default_light_chunk() -> int:
     return 8 if jax.default_backend() == "gpu" else 64
 
 
+def light_radiance(points, normals, views, material: dict, lights: Lights, visibility=None, *,
+                   distribution: str):
+    """brdf(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i of each of M lights at each of P points: the per-light
+    arithmetic that every light loop (all lights, or culled per-tile lists) shares.
+
+    ``points`` [P, 3] world positions; ``normals``, ``views`` [P, 1, 3] unit vectors (normal, towards
+    the eye); ``material``: ``base_color`` [P, 1, 3], ``roughness``, ``metallic`` [P, 1]; ``lights``: M
+    lights; ``visibility``: None or [P, M] shadow factors s_i in [0, 1]; ``distribution`` (static).
+    Returns radiance [P, M, 3] (W/(m² sr)).
+    """
+    to_light, irradiance = incident_light(lights, points)  # [P, M, 3] each
+    f = brdf(normals, views, to_light, **material, distribution=distribution)
+    cosine = jnp.maximum(jnp.sum(normals * to_light, axis=-1, keepdims=True), 0.0)
+    radiance = f * irradiance * cosine
+    if visibility is not None:
+        radiance = radiance * visibility[..., None]
+    return radiance
+
+
+def _with_unshadowed_column(shadow, n_points: int):
+    """[P, K] shadow factors → [P, K + 1]: one column of ones stands for every unshadowed (and padding)
+    light, so a chunk gathers its factors from a [P, K + 1] array instead of a [P, N] one."""
+    return jnp.concatenate([jnp.asarray(shadow, jnp.float32), jnp.ones((n_points, 1), jnp.float32)], axis=1)
+
+
+def _broadcast_surface(normals, views, base_color, roughness, metallic):
+    """Per-point surface values with a light axis of size 1, as :func:`light_radiance` takes them."""
+    material = dict(base_color=base_color[:, None, :], roughness=roughness[:, None], metallic=metallic[:, None])
+    return normals[:, None, :], views[:, None, :], material
+
+
 def accumulate_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, *, shadow=None,
                       distribution: str = "ggx", light_chunk: int | None = None):
     """Σ_i brdf(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i over all N lights, chunked over lights.
@@ -80,28 +113,87 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     padded = _pad_lights(lights, n_chunks * chunk - n_lights)
     chunked = jax.tree_util.tree_map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), padded)
     if shadow is not None:
-        # One column of ones stands for every unshadowed (and padding) light, so each chunk gathers
-        # its factors from a [P, K + 1] array instead of a [P, N] one.
-        shadow = jnp.concatenate([jnp.asarray(shadow, jnp.float32), jnp.ones((n_points, 1), jnp.float32)], axis=1)
+        shadow = _with_unshadowed_column(shadow, n_points)
         n_shadowed = shadow.shape[1] - 1
-    n, v = normals[:, None, :], views[:, None, :]
-    material = dict(base_color=base_color[:, None, :], roughness=roughness[:, None], metallic=metallic[:, None])
+    n, v, material = _broadcast_surface(normals, views, base_color, roughness, metallic)
 
     @jax.checkpoint
     def step(total, xs):
         chunk_lights, first = xs
-        to_light, irradiance = incident_light(chunk_lights, points)  # [P, chunk, 3] each
-        f = brdf(n, v, to_light, **material, distribution=distribution)
-        cosine = jnp.maximum(jnp.sum(n * to_light, axis=-1, keepdims=True), 0.0)
-        radiance = f * irradiance * cosine
+        visibility = None
         if shadow is not None:
-            column = jnp.minimum(first + jnp.arange(chunk), n_shadowed)
-            radiance = radiance * jnp.take(shadow, column, axis=1)[..., None]
+            visibility = jnp.take(shadow, jnp.minimum(first + jnp.arange(chunk), n_shadowed), axis=1)
+        radiance = light_radiance(points, n, v, material, chunk_lights, visibility, distribution=distribution)
         return total + jnp.sum(radiance, axis=1), None
 
     starts = jnp.arange(n_chunks, dtype=jnp.int32) * chunk
     total, _ = jax.lax.scan(step, jnp.zeros((n_points, 3), jnp.float32), (chunked, starts))
     return total
+
+
+def light_reaches(lights: Lights, points):
+    """Whether each of N lights' influence truly reaches each of P points [P, 3]: directional lights
+    always; point and spot lights where |p_light − x| < range, spots also strictly inside the outer
+    cone (cos angle > cos_outer). Returns bool [P, N]: where :func:`light_radiance` can be non-zero
+    (shadows and the cosine aside)."""
+    delta = jnp.asarray(points, jnp.float32)[:, None, :] - lights.position[None]
+    distance_sq = jnp.sum(delta * delta, axis=-1)
+    in_range = distance_sq < jnp.where(lights.kind == DIRECTIONAL, jnp.inf, lights.range * lights.range)[None]
+    along_axis = jnp.sum(delta * lights.direction[None], axis=-1)
+    # cos angle > cos_outer without dividing by the distance (cos_outer > 0: outer angle < 90°)
+    in_cone = (along_axis > 0.0) & (along_axis * along_axis > distance_sq * (lights.cos_outer * lights.cos_outer)[None])
+    return (lights.kind == DIRECTIONAL)[None] | (in_range & ((lights.kind != SPOT)[None] | in_cone))
+
+
+def accumulate_light_lists(points, normals, views, base_color, roughness, metallic, lights: Lights, lists, *,
+                           shadow=None, distribution: str = "ggx", light_chunk: int | None = None):
+    """Σ over the lights of each group's list of brdf · E⊥ · max(n·l, 0) · s: the light loop of tiled
+    (and clustered) shading, with the per-light arithmetic of :func:`accumulate_lights`.
+
+    ``points`` [G, Q, 3] world positions in G groups (tiles) of Q points; ``normals``, ``views``,
+    ``base_color`` [G, Q, 3]; ``roughness``, ``metallic`` [G, Q]; ``lights``: N lights; ``lists`` int32
+    [G, C]: the indices of the lights each group evaluates, −1 in empty slots (they get a zero-colour
+    light and add exactly 0); ``shadow``: None or [G, Q, K] visibility of the first K ≤ N lights;
+    ``distribution``, ``light_chunk`` (static) as in :func:`accumulate_lights` (slots per scan step,
+    capped at C; peak intermediate [G·Q, light_chunk, 3]).
+    Returns ``(radiance [G, Q, 3], reached [G, Q] float32)``: ``reached`` counts the listed lights whose
+    influence truly reaches each point (:func:`light_reaches`).
+    """
+    points = jnp.asarray(points, jnp.float32)
+    n_groups, n_per_group = points.shape[:2]
+    capacity = lists.shape[1]
+    if capacity == 0 or lights.count == 0:
+        return jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32)
+    chunk = min(light_chunk or default_light_chunk(), capacity)
+    n_chunks = -(-capacity // chunk)
+    # Empty slots (and the slots padding C to whole chunks) index one appended zero-colour light.
+    lists = jnp.where(lists < 0, lights.count, lists)
+    lists = jnp.pad(lists, [(0, 0), (0, n_chunks * chunk - capacity)], constant_values=lights.count)
+    slots = lists.reshape(n_groups, n_chunks, chunk).transpose(1, 0, 2)  # [n_chunks, G, chunk]
+    padded = _pad_lights(lights, 1)
+    if shadow is not None:
+        n_shadowed = shadow.shape[-1]
+        shadow = _with_unshadowed_column(shadow.reshape(n_groups * n_per_group, n_shadowed), n_groups * n_per_group)
+        shadow = shadow.reshape(n_groups, n_per_group, n_shadowed + 1)
+
+    def group(group_points, n, v, base, rough, metal, group_shadow, indices):
+        """One group's Q points and its ``chunk`` listed lights → radiance [Q, 3], reached [Q]."""
+        chunk_lights = jax.tree_util.tree_map(lambda x: x[indices], padded)
+        n, v, material = _broadcast_surface(n, v, base, rough, metal)
+        visibility = None if group_shadow is None else jnp.take(group_shadow, jnp.minimum(indices, n_shadowed), axis=1)
+        radiance = light_radiance(group_points, n, v, material, chunk_lights, visibility, distribution=distribution)
+        reached = light_reaches(chunk_lights, group_points) & (indices < lights.count)[None]
+        return jnp.sum(radiance, axis=1), jnp.sum(reached, axis=1, dtype=jnp.float32)
+
+    @jax.checkpoint
+    def step(carry, indices):
+        total, count = carry
+        radiance, reached = jax.vmap(group)(points, normals, views, base_color, roughness, metallic, shadow, indices)
+        return (total + radiance, count + reached), None
+
+    zeros = (jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32))
+    (total, reached), _ = jax.lax.scan(step, zeros, slots)
+    return total, reached
 
 
 def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribution: str, light_chunk: int | None,
@@ -120,6 +212,25 @@ def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribut
             )
 
 
+def view_directions(points, eye):
+    """Unit vectors [P, 3] from ``points`` [P, 3] towards ``eye`` [3] (finite at the eye itself)."""
+    to_eye = jnp.asarray(eye, jnp.float32) - points
+    return to_eye / jnp.maximum(jnp.linalg.norm(to_eye, axis=-1, keepdims=True), _VIEW_LENGTH_MIN)
+
+
+def compose_radiance(coverage, direct, emission, base_color, metallic, *, ambient, background):
+    """L_e + L_a · (1 − m) · c + direct where covered, the background elsewhere → hdr [H, W, 3].
+
+    ``coverage`` [H, W]; ``direct``, ``emission``, ``base_color`` [H, W, 3]; ``metallic`` [H, W];
+    ``ambient``, ``background`` [3] radiance.
+    """
+    ambient = jnp.asarray(ambient, jnp.float32)
+    diffuse_albedo = (1.0 - jnp.asarray(metallic, jnp.float32))[..., None] * jnp.asarray(base_color, jnp.float32)
+    radiance = jnp.asarray(emission, jnp.float32) + ambient * diffuse_albedo + direct
+    covered = jnp.asarray(coverage) > 0
+    return jnp.where(covered[..., None], radiance, jnp.asarray(background, jnp.float32))
+
+
 def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, emission, lights: Lights, eye, *,
                    ambient, shadow, background, distribution: str, light_chunk: int | None):
     """Shades per-pixel surface attributes and counts the work; the body of deferred and forward shading.
@@ -135,17 +246,13 @@ def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, 
         return x.reshape((height * width,) + x.shape[2:])
 
     points, normals = flat(position), flat(normal)
-    to_eye = jnp.asarray(eye, jnp.float32) - points
-    views = to_eye / jnp.maximum(jnp.linalg.norm(to_eye, axis=-1, keepdims=True), _VIEW_LENGTH_MIN)
+    views = view_directions(points, eye)
     flat_shadow = None if shadow is None else flat(shadow)
     direct = accumulate_lights(points, normals, views, flat(base_color), flat(roughness), flat(metallic), lights,
                                shadow=flat_shadow, distribution=distribution, light_chunk=light_chunk)
-    ambient = jnp.asarray(ambient, jnp.float32)
-    diffuse_albedo = (1.0 - jnp.asarray(metallic, jnp.float32))[..., None] * jnp.asarray(base_color, jnp.float32)
-    radiance = jnp.asarray(emission, jnp.float32) + ambient * diffuse_albedo + direct.reshape(height, width, 3)
-    covered = jnp.asarray(coverage) > 0
-    hdr = jnp.where(covered[..., None], radiance, jnp.asarray(background, jnp.float32))
-    n_covered = jnp.sum(covered, dtype=jnp.int32)
+    hdr = compose_radiance(coverage, direct.reshape(height, width, 3), emission, base_color, metallic,
+                           ambient=ambient, background=background)
+    n_covered = jnp.sum(jnp.asarray(coverage) > 0, dtype=jnp.int32)
     counters = {
         # float32 so that covered pixels × N never wraps (exact below 2^24, 1e-7 relative above)
         "lighting_computations": n_covered.astype(jnp.float32) * jnp.float32(lights.count),

@@ -1,0 +1,53 @@
+"""The Cornell-box scene, G-buffer and light sets shared by the many-light technique tests (tiled, FPTL)."""
+
+import numpy as np
+
+import gpupro as gp
+from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
+from gpupro.scene.lights import concatenate_lights
+from gpupro.techniques.lights.deferred import DEFERRED_INPUTS
+
+RES = (48, 48)
+SCENE = gp.scenes.cornell_box(resolution=RES)
+CAMERA = SCENE.camera
+_gbuffer = gp.pipeline_for("gbuffer", outputs=DEFERRED_INPUTS + ("view_depth",))
+GBUFFER = {k: v for k, v in _gbuffer(_gbuffer.init_params(), SCENE).items() if k != "counters"}
+COVERED = np.asarray(GBUFFER["coverage"]) > 0
+OPTIONS = dict(ambient=(0.05, 0.05, 0.05), background=(0.1, 0.2, 0.3), distribution="ggx", light_chunk=8)
+
+
+def world_at_pixel(x, y, depth):
+    """World point seen at pixel coordinates (x, y) (continuous, pixel edges at integers), ``depth`` deep."""
+    h, w = RES
+    tan = np.tan(0.5 * float(CAMERA.fov_y))
+    ray_view = np.array([(2 * x / w - 1) * tan * w / h, (1 - 2 * y / h) * tan, -1.0]) * depth
+    view = np.asarray(CAMERA.view_matrix(), np.float64)
+    return view[:3, :3].T @ (ray_view - view[:3, 3])
+
+
+def mixed_lights(seed=0):
+    """100 lights: 90 small points and spots in the box, then lights behind the camera, crossing the near
+    plane, holding the eye, covering the whole screen, on tile corners, and a directional one."""
+    rng = np.random.default_rng(seed)
+    lo, hi = (np.asarray(b) for b in SCENE.bounds())
+    box = make_lights(rng.choice([POINT, SPOT], size=90), position=rng.uniform(lo, hi, (90, 3)),
+                      direction=rng.normal(size=(90, 3)), color=rng.uniform(0.5, 3.0, (90, 3)),
+                      range=rng.uniform(0.5, 1.5, 90), inner_angle_degrees=10.0,
+                      outer_angle_degrees=rng.uniform(15.0, 80.0, 90))
+    eye = np.asarray(CAMERA.eye)
+    special = make_lights(
+        [POINT, POINT, SPOT, POINT, POINT, POINT, SPOT, POINT, SPOT, DIRECTIONAL],
+        position=[eye - [0, 0, 3], eye + [0.3, 0, 0.05], eye + [0, 0, 0.05], eye - [0, 0, 2], (2.8, 2.7, 2.8),
+                  world_at_pixel(16, 16, 9.0), world_at_pixel(32, 16, 9.5), world_at_pixel(16, 32, 10.0),
+                  world_at_pixel(32, 32, 12.0), (0, 0, 0)],
+        direction=[(0, 0, 1), (0, 0, 1), (0, 0, 1), (0, 0, 1), (0, -1, 0), (0, 0, 1), (0, -1, 1), (0, 0, 1),
+                   (0, 0, -1), (0.2, -1, 0.5)],
+        color=[(5, 5, 5), (1, 1, 1), (1, 1, 1), (3, 3, 3), (2, 2, 2), (2, 1, 1), (1, 2, 1), (1, 1, 2), (2, 2, 1),
+               (0.2, 0.2, 0.2)],
+        range=[1.0, 0.5, 0.7, 14.0, 40.0, 1.0, 2.0, 1.0, 1.5, 1.0],
+        inner_angle_degrees=20.0, outer_angle_degrees=40.0)
+    return concatenate_lights([box, special])
+
+
+def assert_same(fast, slow):
+    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-4 * max(float(np.abs(slow).max()), 1e-6))

@@ -1,0 +1,102 @@
+"""Fine Pruned Tiled Lighting (gpupro.techniques.lights.fptl) against brute force and tiled deferred shading."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import gpupro as gp
+from gpupro.scene import POINT, SPOT, make_lights, no_lights
+from gpupro.shading import light_reaches
+from gpupro.techniques.lights.deferred import shade_deferred
+from gpupro.techniques.lights.fptl import build_light_lists, shade_fptl
+from gpupro.techniques.lights.tiled import shade_tiled, to_tiles
+from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_same, mixed_lights
+
+TILE = 16
+
+fptl = jax.jit(shade_fptl, static_argnames=("distribution", "light_chunk", "tile", "tile_capacity"))
+tiled = jax.jit(shade_tiled, static_argnames=("distribution", "light_chunk", "tile", "tile_capacity", "depth_bounds"))
+brute = jax.jit(shade_deferred, static_argnames=("distribution", "light_chunk"))
+lists_of = jax.jit(build_light_lists, static_argnames=("tile", "tile_capacity", "light_chunk"))
+
+
+LIGHTS = {"none": no_lights(), "one": make_lights([SPOT], position=[(2.8, 5.0, 2.8)], direction=[(0, -1, 0)],
+                                                  range=6.0, outer_angle_degrees=30.0),
+          "hundred": mixed_lights()}
+
+
+def truly_reaching(lights):
+    """Σ over covered pixels of the lights whose influence reaches them."""
+    reaches = np.asarray(light_reaches(lights, jnp.asarray(GBUFFER["position"]).reshape(-1, 3)))
+    return float(np.sum(reaches & COVERED.reshape(-1, 1)))
+
+
+@pytest.mark.parametrize("name", sorted(LIGHTS))
+def test_fptl_equals_brute_force_and_prunes_only_what_reaches_nothing(name):
+    lights = LIGHTS[name]
+    fast, counters = fptl(GBUFFER, GBUFFER["view_depth"], lights, CAMERA, **OPTIONS, tile=TILE, tile_capacity=128)
+    slow, _ = brute(GBUFFER, lights, CAMERA.eye, **OPTIONS)
+    assert_same(np.asarray(fast), np.asarray(slow))
+    assert int(counters["tile_list_overflow"]) == 0
+    assert int(counters["tiles"]) == (RES[0] // TILE) * (RES[1] // TILE)
+    lighting, exact = float(counters["lighting_computations"]), float(counters["exact_lighting_computations"])
+    coarse = float(counters["coarse_lighting_computations"])
+    assert exact == truly_reaching(lights)
+    assert exact <= lighting <= coarse
+    listed = sum(int(counters[f"{t}_lights_listed"]) for t in ("point", "spot", "other"))
+    assert int(counters["lights_pruned"]) >= 0 and (listed > 0) == (lighting > 0)
+
+
+def test_pruned_lists_are_exact_per_tile_and_sorted_by_type():
+    lights = LIGHTS["hundred"]
+    lists, type_counts, coarse, counts = (np.asarray(x) for x in lists_of(
+        lights, CAMERA, GBUFFER["position"], GBUFFER["view_depth"], GBUFFER["coverage"], tile=TILE,
+        tile_capacity=128, light_chunk=8))
+    assert (coarse == counts).all()
+    points = to_tiles(jnp.asarray(GBUFFER["position"]), tile=TILE)
+    covered = np.asarray(to_tiles(jnp.asarray(GBUFFER["coverage"]) > 0, tile=TILE))
+    kind = np.asarray(lights.kind)
+    rank = np.where(kind == POINT, 0, np.where(kind == SPOT, 1, 2))
+    for t in range(lists.shape[0]):
+        reaching = np.asarray(light_reaches(lights, points[t]))[covered[t]].any(axis=0)
+        entries = lists[t][lists[t] >= 0]
+        assert (lists[t][len(entries):] == -1).all(), "kept lights first, empty slots after"
+        assert sorted(entries) == list(np.flatnonzero(reaching)), "exactly the lights reaching a sample"
+        order = list(zip(rank[entries], entries))
+        assert order == sorted(order), "point lights, then spots, then others; by index within a type"
+        assert list(type_counts[t]) == [int(np.sum(rank[entries] == r)) for r in range(3)]
+    assert type_counts.sum(axis=0).min() > 0, "the scene lists every type"
+
+
+def small_lights(count=200, seed=1):
+    """Many small point and spot lights (range 0.3–0.8) anywhere in the box."""
+    rng = np.random.default_rng(seed)
+    lo, hi = (np.asarray(b) for b in SCENE.bounds())
+    return make_lights(rng.choice([POINT, SPOT], size=count), position=rng.uniform(lo, hi, (count, 3)),
+                       direction=rng.normal(size=(count, 3)), color=(2.0, 2.0, 2.0), range=rng.uniform(0.3, 0.8, count),
+                       inner_angle_degrees=10.0, outer_angle_degrees=30.0)
+
+
+def test_fine_pruning_evaluates_fewer_lights_than_tiled_deferred():
+    lights = small_lights()
+    fast, pruned = fptl(GBUFFER, GBUFFER["view_depth"], lights, CAMERA, **OPTIONS, tile=TILE, tile_capacity=256)
+    coarse, tiled_counters = tiled(GBUFFER, GBUFFER["view_depth"], lights, CAMERA, **OPTIONS, tile=TILE,
+                                   tile_capacity=256, depth_bounds=True)
+    assert_same(np.asarray(fast), np.asarray(coarse))
+    assert float(pruned["exact_lighting_computations"]) == float(tiled_counters["exact_lighting_computations"])
+    assert float(pruned["coarse_lighting_computations"]) == float(tiled_counters["lighting_computations"])
+    assert float(pruned["lighting_computations"]) < float(tiled_counters["lighting_computations"])
+    assert float(pruned["false_positive_rate"]) < float(tiled_counters["false_positive_rate"])
+    assert int(pruned["lights_pruned"]) > 0
+
+
+def test_forced_small_capacity_is_grown_by_render():
+    scene = SCENE.replace(lights=LIGHTS["hundred"])
+    small = gp.pipeline_for("fptl", outputs=("hdr",), tile=16, tile_capacity=2)
+    frame = small(small.init_params(), scene)
+    assert int(frame["counters"]["fptl"]["tile_list_overflow"]) > 0
+    grown = gp.render(scene, small, outputs=("hdr",), quiet=True)
+    reference = gp.render(scene, gp.pipeline_for("deferred", outputs=("hdr",)), outputs=("hdr",), quiet=True)
+    assert int(grown["counters"]["fptl"]["tile_list_overflow"]) == 0
+    assert_same(np.asarray(grown["hdr"]), np.asarray(reference["hdr"]))
