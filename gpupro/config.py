@@ -490,8 +490,6 @@ def build_pipeline(config: dict) -> tuple[Pipeline, dict]:
             passes.append(make_pass(name, params=tables["params"], inputs=tables["inputs"], **tables["options"]))
         except OptionError as error:
             table = next((t for t in ("inputs", "params") if error.key in tables[t]), "options")
-            if table == "options" and any(error.key == p.name for p in registered()[name].params):
-                table = "params"
             raise ConfigError(f"{source}: pipeline.{table}.{name}.{error.key}: {error.message}") from None
     outputs = config.get("outputs", {}).get("buffers", ["hdr", "ldr"])
     try:

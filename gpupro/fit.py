@@ -37,7 +37,7 @@ from gpupro.config import ConfigError, build_pipeline, build_scene, load_config
 from gpupro.io.exr import read_exr, write_exr
 from gpupro.io.png import preview_image, to_uint8, write_png
 from gpupro.pipeline.batch import batched_frame, select_devices, shard_frames
-from gpupro.pipeline.capacity import grown, overflows
+from gpupro.pipeline.capacity import has_lossy_capacity, render_without_overflow, say_on_stderr
 from gpupro.pipeline.graph import Pipeline
 
 LOSSES = ("l2", "l1", "relative_l2")
@@ -180,9 +180,16 @@ def fit(
     lower = [jnp.float32(p.lower) for p in parameters]
     upper = [jnp.float32(p.upper) for p in parameters]
 
+    steps_by_pipeline = {}  # a grown capacity is a new pipeline, traced once
+
+    def step_for(pipeline):
+        if pipeline not in steps_by_pipeline:
+            steps_by_pipeline[pipeline] = make_step(pipeline)
+        return steps_by_pipeline[pipeline]
+
     def make_step(pipeline):
         render = _renderer(pipeline, buffer, views)
-        lossy = any(c.lossy for p in pipeline.passes if p.technique for c in p.technique.capacities)
+        lossy = has_lossy_capacity(pipeline)
 
         def objective(values):
             p, s = _scatter(parameters, values, params, scene)
@@ -203,28 +210,18 @@ def fit(
 
         return step
 
-    step = make_step(pipeline)
     state = optimizer.init(values)
     history = []
-    i = 0
-    while i < steps:
-        new_values, new_state, value, counters = step(values, state)
-        found = overflows(pipeline, counters)
-        if found:
-            bigger = grown(pipeline, counters, found)
-            if not quiet:
-                for name, capacity, count in found:
-                    print(f"fit: {name}: {capacity.counter} = {count}; growing {capacity.option} to "
-                          f"{bigger[name].options[capacity.option]} and taking step {i + 1} again", file=sys.stderr, flush=True)
-            pipeline, step = bigger, make_step(bigger)
-            continue
-        values, state = new_values, new_state
+    for i in range(steps):
+        # A step taken with an overflowing capacity is taken again from the same values, grown.
+        pipeline, (values, state, value, _) = render_without_overflow(
+            pipeline, lambda p: step_for(p)(values, state), say=None if quiet else say_on_stderr,
+            counters_of=lambda result: result[3])
         history.append(float(value))
         if not math.isfinite(history[-1]):
             raise FloatingPointError(f"fit: loss became {history[-1]} at step {i}")
         if progress is not None and (i % 10 == 0 or i == steps - 1):
             print(f"step {i + 1}/{steps}: loss {history[-1]:.4g}", file=progress, flush=True)
-        i += 1
     final_params, final_scene = _scatter(parameters, values, params, scene)
     return FitResult(values, history, final_params, final_scene, pipeline)
 

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import sys
-
-from gpupro.pipeline.capacity import render_without_overflow
+from gpupro.pipeline.capacity import render_without_overflow, say_on_stderr
 from gpupro.pipeline.graph import Pipeline
 from gpupro.pipeline.passes import default_pipeline
 from gpupro.scene.scene import Scene
@@ -20,17 +18,11 @@ def render(scene: Scene, pipeline: Pipeline | None = None, params=None, state=No
     ``init_params()``; ``outputs`` to the pipeline's outputs (any intermediate buffer name works).
     The scene is checked first (:func:`gpupro.scene.check_scene`: a ValueError names a bad field). If a
     capacity overflows, it is grown and the frame rendered again (a line on stderr says so unless
-    ``quiet``), so no
-    light or triangle is ever missing.
+    ``quiet``), so no light or triangle is ever missing.
     """
     check_scene(scene)
     pipeline = pipeline or default_pipeline()
     params = pipeline.init_params() if params is None else params
-    result = {}
-
-    def run(p):
-        result["frame"] = p(params, scene, state, outputs=outputs)
-        return result["frame"] if state is None else result["frame"][0]
-
-    render_without_overflow(pipeline, run, log=None if quiet else sys.stderr)
-    return result["frame"]
+    counters = (lambda result: result["counters"]) if state is None else (lambda result: result[0]["counters"])
+    return render_without_overflow(pipeline, lambda p: p(params, scene, state, outputs=outputs),
+                                   say=None if quiet else say_on_stderr, counters_of=counters)[1]

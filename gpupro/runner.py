@@ -30,7 +30,7 @@ from gpupro.config import ConfigError, build_pipeline, build_scene, camera_path,
 from gpupro.io.exr import write_exr
 from gpupro.io.png import preview_image, write_animation, write_png
 from gpupro.pipeline.batch import batched_frame, check_batchable, select_devices, shard_frames, unpad
-from gpupro.pipeline.capacity import capacities, grown, overflows
+from gpupro.pipeline.capacity import capacities, render_without_overflow
 from gpupro.pipeline.graph import COUNTERS
 from gpupro.scene.validate import check_scene
 
@@ -170,37 +170,45 @@ class _Progress:
             self.bar.close()
 
 
-def _compile(pipeline, params, scene, state):
-    start = time.perf_counter()
-    compiled = pipeline.frame().lower(params, scene, state).compile()
-    return compiled, time.perf_counter() - start
+class _Compiled:
+    """One compiled program per pipeline (a grown capacity is a new pipeline), compile seconds summed."""
+
+    def __init__(self, lower):
+        self.lower, self.programs, self.seconds = lower, {}, 0.0
+
+    def __call__(self, pipeline):
+        if pipeline not in self.programs:
+            start = time.perf_counter()
+            self.programs[pipeline] = self.lower(pipeline).compile()
+            self.seconds += time.perf_counter() - start
+        return self.programs[pipeline]
+
+
+def _timed(program, args, repeats: int):
+    """``repeats`` runs of ``program(*args)``; returns (last result, milliseconds of each run)."""
+    runs = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = jax.block_until_ready(program(*args))
+        runs.append(1e3 * (time.perf_counter() - start))
+    return result, runs
 
 
 def _run_in_order(pipeline, params, scene, cameras, repeats, progress):
     """Frames one after the other, threading state; returns (pipeline, frames' buffers, ms, compile s)."""
     state = pipeline.init_state(scene) if pipeline.stateful else None
-    compiled, compile_s = _compile(pipeline, params, scene, state)
+    compiled = _Compiled(lambda p: p.frame().lower(params, scene, state))
+    counters_of = (lambda run: run[0][COUNTERS]) if state is None else (lambda run: run[0][0][COUNTERS])
     frames, times_ms = [], []
     for index, camera in enumerate(cameras):
-        frame_scene = scene.replace(camera=camera)
-        while True:
-            runs = []
-            for _ in range(repeats):
-                start = time.perf_counter()
-                result = jax.block_until_ready(compiled(params, frame_scene, state))
-                runs.append(1e3 * (time.perf_counter() - start))
-            buffers, new_state = result if state is not None else (result, None)
-            found = overflows(pipeline, buffers[COUNTERS])
-            if not found:
-                break
-            pipeline = _grow(pipeline, buffers, found, progress)
-            compiled, seconds = _compile(pipeline, params, scene, state)
-            compile_s += seconds
-        state = new_state
+        args = (params, scene.replace(camera=camera), state)
+        pipeline, (result, runs) = render_without_overflow(
+            pipeline, lambda p: _timed(compiled(p), args, repeats), say=progress.say, counters_of=counters_of)
+        buffers, state = (result, None) if state is None else result
         times_ms += runs
         frames.append(jax.device_get(buffers))
         progress.frame_done(index, runs[-1])
-    return pipeline, frames, times_ms, compile_s
+    return pipeline, frames, times_ms, compiled.seconds
 
 
 def _run_batched(pipeline, params, scene, cameras, repeats, devices, progress):
@@ -208,36 +216,16 @@ def _run_batched(pipeline, params, scene, cameras, repeats, devices, progress):
     per-frame times the batch time divided by the frame count."""
     check_batchable(pipeline)
     *placed, n = shard_frames(params, scene, cameras, select_devices(devices))
-    compile_s = 0.0
-    while True:
-        batch = batched_frame(pipeline)
-        start = time.perf_counter()
-        compiled = batch.lower(*placed).compile()
-        compile_s += time.perf_counter() - start
-        batch_ms = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            buffers = jax.block_until_ready(compiled(*placed))
-            batch_ms.append(1e3 * (time.perf_counter() - start))
-        buffers = unpad(buffers, n)
-        found = overflows(pipeline, buffers[COUNTERS])
-        if not found:
-            break
-        pipeline = _grow(pipeline, buffers, found, progress)
-    host = jax.device_get(buffers)
+    compiled = _Compiled(lambda p: batched_frame(p).lower(*placed))
+    # The padding frames repeat the last camera, so their counters add no overflow of their own.
+    pipeline, (buffers, batch_ms) = render_without_overflow(
+        pipeline, lambda p: _timed(compiled(p), placed, repeats), say=progress.say,
+        counters_of=lambda run: run[0][COUNTERS])
+    host = jax.device_get(unpad(buffers, n))
     frames = [_frame_at(host, i) for i in range(n)]
     for index in range(n):
         progress.frame_done(index, batch_ms[-1] / n)
-    return pipeline, frames, [ms / n for ms in batch_ms], compile_s
-
-
-def _grow(pipeline, buffers, found, progress):
-    bigger = grown(pipeline, buffers[COUNTERS], found)
-    for name, capacity, count in found:
-        progress.say(f"{name}: {capacity.counter} = {count} with {capacity.option} = "
-                     f"{pipeline[name].options[capacity.option]}: growing it to {bigger[name].options[capacity.option]} "
-                     "and rendering again")
-    return bigger
+    return pipeline, frames, [ms / n for ms in batch_ms], compiled.seconds
 
 
 def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.stderr, devices=None) -> dict:

@@ -51,3 +51,16 @@ def mixed_lights(seed=0):
 
 def assert_same(fast, slow):
     np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-4 * max(float(np.abs(slow).max()), 1e-6))
+
+
+def assert_capacity_grown_to_brute_force(technique_id, lights):
+    """With 2 list slots per 16-pixel tile the lists overflow and say so; ``gp.render`` grows the capacity
+    and the image equals brute-force deferred shading."""
+    scene = SCENE.replace(lights=lights)
+    small = gp.pipeline_for(technique_id, outputs=("hdr",), tile=16, tile_capacity=2)
+    frame = small(small.init_params(), scene)
+    assert int(frame["counters"][technique_id]["tile_list_overflow"]) > 0
+    grown = gp.render(scene, small, outputs=("hdr",), quiet=True)
+    reference = gp.render(scene, gp.pipeline_for("deferred", outputs=("hdr",)), outputs=("hdr",), quiet=True)
+    assert int(grown["counters"][technique_id]["tile_list_overflow"]) == 0
+    assert_same(np.asarray(grown["hdr"]), np.asarray(reference["hdr"]))

@@ -5,13 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import gpupro as gp
 from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.fptl import build_light_lists, shade_fptl
 from gpupro.techniques.lights.tiled import shade_tiled, to_tiles
-from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_same, mixed_lights
+from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 TILE = 16
 
@@ -92,11 +91,4 @@ def test_fine_pruning_evaluates_fewer_lights_than_tiled_deferred():
 
 
 def test_forced_small_capacity_is_grown_by_render():
-    scene = SCENE.replace(lights=LIGHTS["hundred"])
-    small = gp.pipeline_for("fptl", outputs=("hdr",), tile=16, tile_capacity=2)
-    frame = small(small.init_params(), scene)
-    assert int(frame["counters"]["fptl"]["tile_list_overflow"]) > 0
-    grown = gp.render(scene, small, outputs=("hdr",), quiet=True)
-    reference = gp.render(scene, gp.pipeline_for("deferred", outputs=("hdr",)), outputs=("hdr",), quiet=True)
-    assert int(grown["counters"]["fptl"]["tile_list_overflow"]) == 0
-    assert_same(np.asarray(grown["hdr"]), np.asarray(reference["hdr"]))
+    assert_capacity_grown_to_brute_force("fptl", LIGHTS["hundred"])

@@ -163,7 +163,7 @@ def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, 
     frame = small(small.init_params(), scene)
     assert int(frame["counters"][technique_id][capacity.counter]) > 0, "the overflow is reported"
     if capacity.lossy:
-        used, frame = render_without_overflow(small, lambda p: p(p.init_params(), scene), log=None)
+        used, frame = render_without_overflow(small, lambda p: p(p.init_params(), scene))
         assert used[technique_id].options[capacity.option] > capacity.small
     _assert_same(frame, expected, [b.name for b in t.outputs if b.name in expected])
 

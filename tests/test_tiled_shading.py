@@ -5,12 +5,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import gpupro as gp
 from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.tiled import light_spheres, shade_tiled
-from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_same, mixed_lights
+from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 STATIC = ("distribution", "light_chunk", "tile", "tile_capacity", "depth_bounds")
 
@@ -55,14 +54,7 @@ def test_small_lights_cost_fewer_lighting_computations_with_depth_bounds():
 
 
 def test_forced_small_capacity_is_grown_by_render():
-    scene = SCENE.replace(lights=LIGHTS["hundred"])
-    small = gp.pipeline_for("tiled_deferred", outputs=("hdr",), tile=16, tile_capacity=2)
-    frame = small(small.init_params(), scene)
-    assert int(frame["counters"]["tiled_deferred"]["tile_list_overflow"]) > 0
-    grown = gp.render(scene, small, outputs=("hdr",), quiet=True)
-    reference = gp.render(scene, gp.pipeline_for("deferred", outputs=("hdr",)), outputs=("hdr",), quiet=True)
-    assert int(grown["counters"]["tiled_deferred"]["tile_list_overflow"]) == 0
-    assert_same(np.asarray(grown["hdr"]), np.asarray(reference["hdr"]))
+    assert_capacity_grown_to_brute_force("tiled_deferred", LIGHTS["hundred"])
 
 
 def narrow_spots(kind):

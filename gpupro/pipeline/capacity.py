@@ -51,23 +51,38 @@ def capacities(pipeline: Pipeline) -> dict[str, dict[str, Any]]:
             for p in pipeline.passes if p.technique is not None and p.technique.capacities}
 
 
-def render_without_overflow(pipeline: Pipeline, render: Callable[[Pipeline], dict], *, log=sys.stderr) -> tuple[Pipeline, dict]:
-    """Calls ``render(pipeline)`` (→ buffers with ``"counters"``) until no lossy capacity overflows.
+def has_lossy_capacity(pipeline: Pipeline) -> bool:
+    """Whether any pass of ``pipeline`` has a capacity that can drop items (so its counters must be read)."""
+    return any(c.lossy for p in pipeline.passes if p.technique is not None for c in p.technique.capacities)
 
-    Returns the pipeline that was used last and its buffers. Writes one line to ``log`` per growth
-    (``None``: silent). Raises ``RuntimeError`` naming the capacities if :data:`MAX_ROUNDS` is reached.
+
+def render_without_overflow(pipeline: Pipeline, render: Callable[[Pipeline], Any], *,
+                            say: Callable[[str], None] | None = None,
+                            counters_of: Callable[[Any], Mapping] = lambda result: result["counters"]) -> tuple[Pipeline, Any]:
+    """Calls ``render(pipeline)`` until no lossy capacity overflows.
+
+    ``counters_of(result)`` finds the ``{pass: {counter: value}}`` dict in what ``render`` returns (by
+    default a frame's ``"counters"``). Returns the pipeline that was used last and what ``render``
+    returned for it. Each growth is said in one line through ``say`` (``None``: silent). Raises
+    ``RuntimeError`` naming the capacities if :data:`MAX_ROUNDS` is reached.
     """
     for _ in range(MAX_ROUNDS):
-        buffers = render(pipeline)
-        found = overflows(pipeline, buffers["counters"])
+        result = render(pipeline)
+        counters = counters_of(result)
+        found = overflows(pipeline, counters)
         if not found:
-            return pipeline, buffers
-        bigger = grown(pipeline, buffers["counters"], found)
-        if log is not None:
+            return pipeline, result
+        bigger = grown(pipeline, counters, found)
+        if say is not None:
             for name, capacity, count in found:
-                print(f"{name}: {capacity.counter} = {count} (capacity {capacity.option} = "
-                      f"{pipeline[name].options[capacity.option]}); growing it to "
-                      f"{bigger[name].options[capacity.option]} and rendering again", file=log, flush=True)
+                say(f"{name}: {capacity.counter} = {count} with {capacity.option} = "
+                    f"{pipeline[name].options[capacity.option]}: growing it to "
+                    f"{bigger[name].options[capacity.option]} and rendering again")
         pipeline = bigger
     raise RuntimeError(f"capacities still overflow after {MAX_ROUNDS} growths: "
                        + ", ".join(f"{n}.{c.option}" for n, c, _ in found))
+
+
+def say_on_stderr(text: str) -> None:
+    """Prints ``text`` as one line on the current ``sys.stderr`` (for :func:`render_without_overflow`)."""
+    print(text, file=sys.stderr, flush=True)

@@ -50,6 +50,11 @@ def make_pass(technique: str | Technique, *, name: str | None = None, params: Ma
                 bind={buffer: key for key, buffer in binding.items()})
 
 
+def _made(technique: str, example: bool, **options) -> Pass:
+    """``make_pass(technique, **options)``, over the technique's ``example_options`` when ``example``."""
+    return make_pass(technique, **{**((get(technique).example_options or {}) if example else {}), **options})
+
+
 def complete(passes: Sequence[Pass], *, outputs: Sequence[str] | None = None, example: bool = False) -> Pipeline:
     """A pipeline of ``passes`` plus producers of every required input they lack, taken from the
     registry (:data:`STANDARD` first, then any technique that is not a reference). ``outputs`` default
@@ -65,7 +70,7 @@ def complete(passes: Sequence[Pass], *, outputs: Sequence[str] | None = None, ex
         producer = next((t for t in candidates if t not in chosen and buffer in {b.name for b in get(t).outputs}), None)
         if producer is None:
             raise PipelineError(f"no registered technique produces {buffer!r}, which the pipeline needs")
-        chosen[producer] = make_pass(producer, **(get(producer).example_options or {} if example else {}))
+        chosen[producer] = _made(producer, example)
         produced |= set(chosen[producer].outputs)
         pending += list(chosen[producer].inputs)
     return Pipeline(list(chosen.values()), outputs=outputs or tuple(b for p in passes for b in p.outputs))
@@ -77,11 +82,8 @@ def pipeline_for(technique: str, *, outputs: Sequence[str] | None = None, extra:
     to include (e.g. ``("shadow_maps",)`` to feed an optional input); ``outputs`` default to the
     technique's outputs; ``example``: every pass starts from its technique's ``example_options`` (small,
     fast frames for tests and demos)."""
-    def made(t, **more):
-        return make_pass(t, **{**((get(t).example_options or {}) if example else {}), **more})
-
-    main = made(technique, **options)
-    return complete([main] + [made(t) for t in extra], outputs=outputs or main.outputs, example=example)
+    main = _made(technique, example, **options)
+    return complete([main] + [_made(t, example) for t in extra], outputs=outputs or main.outputs, example=example)
 
 
 def default_pipeline(*, shading: str = "deferred", **shading_options) -> Pipeline:
