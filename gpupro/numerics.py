@@ -20,3 +20,16 @@ def matmul(a: jax.Array, b: jax.Array) -> jax.Array:
 def einsum(subscripts: str, *operands: jax.Array) -> jax.Array:
     """:func:`jax.numpy.einsum` (any shapes the subscripts allow) at full float32 precision."""
     return jnp.einsum(subscripts, *operands, precision=_FULL)
+
+
+def dot3(a: jax.Array, b: jax.Array, *, keepdims: bool = False) -> jax.Array:
+    """Σ_k a[..., k] · b[..., k] over a last axis of size 3 (broadcast shapes [..., 3] → [...], or [..., 1]
+    with ``keepdims``).
+
+    Written as three products and two sums rather than a reduction: XLA fuses elementwise arithmetic
+    and slices into one loop, but ends a fusion at every reduce, so a per-light loop of dot products
+    written with ``jnp.sum`` writes its [P, M, 3] operands to memory several times per step.
+    """
+    a, b = jnp.asarray(a), jnp.asarray(b)
+    total = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+    return total[..., None] if keepdims else total

@@ -64,3 +64,16 @@ def assert_capacity_grown_to_brute_force(technique_id, lights):
     reference = gp.render(scene, gp.pipeline_for("deferred", outputs=("hdr",)), outputs=("hdr",), quiet=True)
     assert int(grown["counters"][technique_id]["tile_list_overflow"]) == 0
     assert_same(np.asarray(grown["hdr"]), np.asarray(reference["hdr"]))
+
+
+def ten_thousand_lights(seed=2):
+    """10,000 small point and spot lights (range 0.2–0.6) anywhere in the box, after the 100 of
+    :func:`mixed_lights` (the issue's largest test case)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = (np.asarray(b) for b in SCENE.bounds())
+    count = 9_900
+    small = make_lights(rng.choice([POINT, SPOT], size=count), position=rng.uniform(lo, hi, (count, 3)),
+                        direction=rng.normal(size=(count, 3)), color=rng.uniform(0.2, 1.0, (count, 3)),
+                        range=rng.uniform(0.2, 0.6, count), inner_angle_degrees=10.0,
+                        outer_angle_degrees=rng.uniform(15.0, 80.0, count))
+    return concatenate_lights([mixed_lights(seed), small])

@@ -137,7 +137,7 @@ def test_chunking_does_not_change_the_image(light_chunk):
     reference, _ = shade(g, lights, light_chunk=1024)
     hdr, _ = shade(g, lights, light_chunk=light_chunk)
     assert float(jnp.max(reference)) > 0.1
-    np.testing.assert_allclose(hdr, reference, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(hdr, reference, rtol=3e-5, atol=1e-7)
 
 
 def test_lights_beyond_their_range_contribute_nothing():

@@ -11,6 +11,7 @@
 - its reference page lists every option and parameter.
 """
 
+import dataclasses
 import inspect
 
 import jax
@@ -110,16 +111,56 @@ def test_reference_page_lists_every_option_and_parameter(technique_id):
 DIFFERENTIABLE = [(t.id, p.name) for t in TECHNIQUES.values() for p in t.params if not p.discontinuous]
 
 
-@pytest.mark.parametrize("technique_id, name", DIFFERENTIABLE, ids=[f"{t}.{p}" for t, p in DIFFERENTIABLE])
-def test_declared_parameters_have_correct_gradients(technique_id, name):
-    pipeline = _example(technique_id)
-    params = pipeline.init_params()
-    # Away from zero, where tone curves and clamps have kinks.
-    params[technique_id][name] = params[technique_id][name] + 0.3
+SHADING = sorted(t.id for t in TECHNIQUES.values() if t.family == "lights" and "hdr" in {b.name for b in t.outputs})
+LIGHT_VALUES = {"color": 0.05, "range": 0.05, "cos_inner": 1e-3, "cos_outer": 1e-3}
+"""Light values and the size of the random step in each (small in the cone cosines, whose falloff bends fast)."""
+GRADIENT_CHECKED = sorted({t for t, _ in DIFFERENTIABLE} | set(SHADING))
+
+
+def _central_difference(loss, values, direction, keys, eps):
+    step = lambda sign: {k: values[k] + sign * eps * direction[k] if k in keys else values[k] for k in values}
+    return float(loss(step(1.0)) - loss(step(-1.0))) / (2.0 * eps)
+
+
+def _agree(analytic, numeric, rtol=0.05):
+    return abs(analytic - numeric) <= rtol * max(abs(analytic), abs(numeric), 1e-3)
+
+
+@pytest.mark.parametrize("technique_id", GRADIENT_CHECKED)
+def test_parameters_and_light_values_have_correct_gradients(technique_id):
+    """One reverse-mode gradient per technique, against central differences: along a random direction
+    in each declared continuous parameter (moved away from zero, where tone curves and clamps have
+    kinks), and for shading techniques jointly in every light's colour, range and cone cosines
+    (culling is discontinuous in the lights, shading is not)."""
     output = next(b.name for b in TECHNIQUES[technique_id].outputs if b.image)
-    checked = gp.check_grads(pipeline, params, SCENES["sphere"], paths=[f"params.{technique_id}.{name}"],
-                             output=output, eps=1e-2, rtol=0.05)
-    assert abs(checked[f"params.{technique_id}.{name}"][0]) > 1e-4, "the parameter changes the output"
+    pipeline = _example(technique_id, outputs=(output,))
+    frame, scene, params = pipeline.frame((output,)), SCENES["sphere"], pipeline.init_params()
+    names = [name for t, name in DIFFERENTIABLE if t == technique_id]
+    values = {("param", n): params[technique_id][n] + 0.3 for n in names}
+    values.update({("light", k): getattr(scene.lights, k) for k in (LIGHT_VALUES if technique_id in SHADING else ())})
+    key = jax.random.PRNGKey(7)
+
+    def loss(values):
+        own = {**params[technique_id], **{n: v for (kind, n), v in values.items() if kind == "param"}}
+        lights = dataclasses.replace(scene.lights, **{k: v for (kind, k), v in values.items() if kind == "light"})
+        return jnp.sum(weights * frame({**params, technique_id: own}, scene.replace(lights=lights))[output])
+
+    weights = jax.random.normal(key, frame(params, scene)[output].shape)
+    gradient = jax.grad(loss)(values)
+    direction = {k: jax.random.normal(jax.random.fold_in(key, i), jnp.shape(v)) for i, (k, v) in enumerate(values.items())}
+    for k in values:
+        if k[0] == "param":  # unit direction, step 1e-2, as gp.check_grads
+            direction[k] = direction[k] / jnp.linalg.norm(direction[k].reshape(-1))
+            analytic = float(jnp.vdot(gradient[k], direction[k]))
+            assert abs(analytic) > 1e-4, f"{k[1]} changes the output"
+            assert _agree(analytic, _central_difference(loss, values, direction, {k}, 1e-2)), k[1]
+        else:
+            direction[k] = LIGHT_VALUES[k[1]] * direction[k]
+    lights = {k for k in values if k[0] == "light"}
+    if lights:
+        analytic = sum(float(jnp.vdot(gradient[k], direction[k])) for k in lights)
+        assert abs(analytic) > 1e-3
+        assert _agree(analytic, _central_difference(loss, values, direction, lights, 1.0)), "light values"
 
 
 @pytest.mark.parametrize("technique_id", IDS)

@@ -8,7 +8,8 @@ import pytest
 from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.tiled import light_spheres, shade_tiled
+from gpupro.shading.light_bounds import light_spheres
+from gpupro.techniques.lights.tiled import shade_tiled
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 STATIC = ("distribution", "light_chunk", "tile", "tile_capacity", "depth_bounds")

@@ -1,4 +1,4 @@
-"""Shading models shared by every technique: BRDFs, light falloff and the light loop."""
+"""Shading models shared by every technique: BRDFs, light falloff, light bounds and the light loop."""
 
 from gpupro.shading.brdfs import (
     ALPHA_MIN,
@@ -25,6 +25,7 @@ from gpupro.shading.light_falloff import (
     incident_light,
     spot_falloff,
 )
+from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, sphere_meets_light, transform_lights
 from gpupro.shading.light_loop import (
     accumulate_light_lists,
     accumulate_lights,

@@ -60,6 +60,8 @@ import math
 import jax.numpy as jnp
 from jax.scipy.special import erfc
 
+from gpupro.numerics import dot3
+
 ALPHA_MIN = 2e-3
 """Smallest microfacet α used (dimensionless); see the module docstring for why."""
 
@@ -234,7 +236,7 @@ def fresnel_schlick(v_dot_h, f0):
 
 
 def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+    return dot3(a, b)
 
 
 def _check_vectors(**vectors) -> None:

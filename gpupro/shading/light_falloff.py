@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from gpupro.numerics import dot3
+
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 
 DISTANCE_EPSILON_SQ = 1e-4
@@ -87,7 +89,7 @@ def incident_light(lights: Lights, points):
         raise ValueError(f"incident_light: points must have shape [P, 3], got {points.shape}")
     directional = lights.kind == DIRECTIONAL
     delta = lights.position[None, :, :] - points[:, None, :]
-    distance = jnp.sqrt(jnp.maximum(jnp.sum(delta * delta, axis=-1), _DISTANCE_SQ_MIN))
+    distance = jnp.sqrt(jnp.maximum(dot3(delta, delta), _DISTANCE_SQ_MIN))
     to_point_light = delta / distance[..., None]
     to_light = jnp.where(directional[None, :, None], -lights.direction[None], to_point_light)
 
@@ -95,7 +97,7 @@ def incident_light(lights: Lights, points):
     # in the lanes that the final where discards.
     light_range = jnp.where(directional, 1.0, lights.range)
     attenuation = distance_falloff(distance, light_range[None, :])
-    cos_angle = -jnp.sum(to_point_light * lights.direction[None], axis=-1)
+    cos_angle = -dot3(to_point_light, lights.direction[None])
     cone = spot_falloff(cos_angle, lights.cos_inner[None, :], lights.cos_outer[None, :])
     attenuation = attenuation * jnp.where((lights.kind == SPOT)[None, :], cone, 1.0)
     scale = jnp.where(directional[None, :], 1.0, attenuation)

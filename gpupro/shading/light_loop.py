@@ -28,9 +28,13 @@ however many lights there are. The chunk body is rematerialised under reverse-mo
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from gpupro.numerics import dot3
 from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights
 from gpupro.shading.brdfs import DISTRIBUTIONS, brdf
 from gpupro.shading.light_falloff import incident_light
@@ -53,12 +57,14 @@ def _pad_lights(lights: Lights, count: int) -> Lights:
 
 
 def default_light_chunk() -> int:
-    """Lights per scan step when none is given: 8 on GPUs, 64 on CPUs.
+    """Lights (or list slots) per scan step when none is given: 32 on GPUs, 64 on CPUs.
 
-    Measured (docs/benchmarks.md): on an H100, 1,024 lights at 1920×1080 took 105 ms with 8 lights a
-    step, 155 ms with 1 or 32, and 1,372 ms with 64; on the 2-core CPU, 64 was 1.5× faster than 256.
+    Measured on an H200 at 1920×1080 (docs/benchmarks.md): brute force over 1,024 lights took 70, 43,
+    41 and 39 ms with 8, 32, 64 and 128 lights a step (peak intermediate [H·W, chunk, 3] floats, 0.8
+    GB at 32); tiled deferred over 2,400 lights 34 ms with 8 slots a step and 29 ms with 32. On the
+    2-core CPU, 64 was 1.5× faster than 256.
     """
-    return 8 if jax.default_backend() == "gpu" else 64
+    return 32 if jax.default_backend() == "gpu" else 64
 
 
 def light_radiance(points, normals, views, material: dict, lights: Lights, visibility=None, *,
@@ -73,7 +79,7 @@ def light_radiance(points, normals, views, material: dict, lights: Lights, visib
     """
     to_light, irradiance = incident_light(lights, points)  # [P, M, 3] each
     f = brdf(normals, views, to_light, **material, distribution=distribution)
-    cosine = jnp.maximum(jnp.sum(normals * to_light, axis=-1, keepdims=True), 0.0)
+    cosine = jnp.maximum(dot3(normals, to_light, keepdims=True), 0.0)
     radiance = f * irradiance * cosine
     if visibility is not None:
         radiance = radiance * visibility[..., None]
@@ -137,27 +143,37 @@ def light_reaches(lights: Lights, points):
     cone (cos angle > cos_outer). Returns bool [P, N]: where :func:`light_radiance` can be non-zero
     (shadows and the cosine aside)."""
     delta = jnp.asarray(points, jnp.float32)[:, None, :] - lights.position[None]
-    distance_sq = jnp.sum(delta * delta, axis=-1)
+    distance_sq = dot3(delta, delta)
     in_range = distance_sq < jnp.where(lights.kind == DIRECTIONAL, jnp.inf, lights.range * lights.range)[None]
-    along_axis = jnp.sum(delta * lights.direction[None], axis=-1)
+    along_axis = dot3(delta, lights.direction[None])
     # cos angle > cos_outer without dividing by the distance (cos_outer > 0: outer angle < 90°)
     in_cone = (along_axis > 0.0) & (along_axis * along_axis > distance_sq * (lights.cos_outer * lights.cos_outer)[None])
     return (lights.kind == DIRECTIONAL)[None] | (in_range & ((lights.kind != SPOT)[None] | in_cone))
 
 
 def accumulate_light_lists(points, normals, views, base_color, roughness, metallic, lights: Lights, lists, *,
-                           shadow=None, distribution: str = "ggx", light_chunk: int | None = None):
+                           list_of_group=None, shadow=None, distribution: str = "ggx", light_chunk: int | None = None):
     """Σ over the lights of each group's list of brdf · E⊥ · max(n·l, 0) · s: the light loop of tiled
     (and clustered) shading, with the per-light arithmetic of :func:`accumulate_lights`.
 
     ``points`` [G, Q, 3] world positions in G groups (tiles) of Q points; ``normals``, ``views``,
     ``base_color`` [G, Q, 3]; ``roughness``, ``metallic`` [G, Q]; ``lights``: N lights; ``lists`` int32
     [G, C]: the indices of the lights each group evaluates, −1 in empty slots (they get a zero-colour
-    light and add exactly 0); ``shadow``: None or [G, Q, K] visibility of the first K ≤ N lights;
-    ``distribution``, ``light_chunk`` (static) as in :func:`accumulate_lights` (slots per scan step,
-    capped at C; peak intermediate [G·Q, light_chunk, 3]).
+    light and add exactly 0; work is cheapest when each list's entries come first); ``list_of_group``:
+    None (group g evaluates row g, C rows = G), or int32 [G]: the row of ``lists`` [R, C] that each
+    group evaluates (−1: none; e.g. each pixel's cluster); ``shadow``: None or
+    [G, Q, K] visibility of the first K ≤ N lights; ``distribution``, ``light_chunk`` (static) as in
+    :func:`accumulate_lights` (list slots per step, capped at C).
     Returns ``(radiance [G, Q, 3], reached [G, Q] float32)``: ``reached`` counts the listed lights whose
     influence truly reaches each point (:func:`light_reaches`).
+
+    Bucketing by list length: shading from the padded [G, C] array would cost every group the longest
+    list's work (as much as brute force once one tile holds many lights). Instead the groups are sorted
+    by the number of chunks their lists use and cut into blocks of about ``WORK_PER_STEP`` evaluations
+    per chunk step; each block loops over its own longest list only, so a group whose list holds k
+    lights costs about ⌈k / chunk⌉ steps. The loops' trip counts are data-dependent, which reverse-mode
+    differentiation cannot follow, so gradients are those of the same sums taken over every slot
+    (:func:`_padded_light_lists`), computed in the backward pass.
     """
     points = jnp.asarray(points, jnp.float32)
     n_groups, n_per_group = points.shape[:2]
@@ -165,35 +181,133 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     if capacity == 0 or lights.count == 0:
         return jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32)
     chunk = min(light_chunk or default_light_chunk(), capacity)
+    surface = tuple(jnp.asarray(x, jnp.float32) for x in (points, normals, views, base_color, roughness, metallic))
+    shadow = None if shadow is None else jnp.asarray(shadow, jnp.float32)
+    lists = jnp.asarray(lists, jnp.int32)
+    if list_of_group is None:
+        rows = jnp.arange(n_groups, dtype=jnp.int32)
+    else:  # −1 picks an appended empty row
+        lists = jnp.concatenate([lists, jnp.full((1, capacity), -1, jnp.int32)])
+        rows = jnp.where(jnp.asarray(list_of_group) < 0, lists.shape[0] - 1, jnp.asarray(list_of_group, jnp.int32))
+    return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+
+
+WORK_PER_STEP = 1 << 21
+"""Light evaluations per chunk step of a block of groups in :func:`accumulate_light_lists` (peak
+intermediate about WORK_PER_STEP × 3 floats)."""
+
+
+def _slots(lists, lights: Lights, chunk: int):
+    """``lists`` [G, C] → [G, n_chunks, chunk] light indices, −1 (and the padding to whole chunks)
+    turned into index N, the appended zero-colour light of ``_pad_lights(lights, 1)``."""
+    n_groups, capacity = lists.shape
     n_chunks = -(-capacity // chunk)
-    # Empty slots (and the slots padding C to whole chunks) index one appended zero-colour light.
     lists = jnp.where(lists < 0, lights.count, lists)
     lists = jnp.pad(lists, [(0, 0), (0, n_chunks * chunk - capacity)], constant_values=lights.count)
-    slots = lists.reshape(n_groups, n_chunks, chunk).transpose(1, 0, 2)  # [n_chunks, G, chunk]
-    padded = _pad_lights(lights, 1)
-    if shadow is not None:
-        n_shadowed = shadow.shape[-1]
-        shadow = _with_unshadowed_column(shadow.reshape(n_groups * n_per_group, n_shadowed), n_groups * n_per_group)
-        shadow = shadow.reshape(n_groups, n_per_group, n_shadowed + 1)
+    return lists.reshape(n_groups, n_chunks, chunk)
 
-    def group(group_points, n, v, base, rough, metal, group_shadow, indices):
-        """One group's Q points and its ``chunk`` listed lights → radiance [Q, 3], reached [Q]."""
-        chunk_lights = jax.tree_util.tree_map(lambda x: x[indices], padded)
-        n, v, material = _broadcast_surface(n, v, base, rough, metal)
-        visibility = None if group_shadow is None else jnp.take(group_shadow, jnp.minimum(indices, n_shadowed), axis=1)
-        radiance = light_radiance(group_points, n, v, material, chunk_lights, visibility, distribution=distribution)
-        reached = light_reaches(chunk_lights, group_points) & (indices < lights.count)[None]
-        return jnp.sum(radiance, axis=1), jnp.sum(reached, axis=1, dtype=jnp.float32)
+
+def _with_unshadowed(shadow, n_groups: int, n_per_group: int):
+    """[G, Q, K] → ([G, Q, K + 1], K): the last column, 1, stands for unshadowed and padding lights."""
+    if shadow is None:
+        return None, 0
+    n_shadowed = shadow.shape[-1]
+    flat = _with_unshadowed_column(shadow.reshape(n_groups * n_per_group, n_shadowed), n_groups * n_per_group)
+    return flat.reshape(n_groups, n_per_group, n_shadowed + 1), n_shadowed
+
+
+def _group_sums(surface, group_shadow, indices, padded: Lights, n_lights: int, n_shadowed: int, distribution: str):
+    """One group's Q points (``surface``: points [Q, 3], normals, views, base colour [Q, 3], roughness,
+    metallic [Q]) and ``chunk`` light ``indices`` → radiance [Q, 3], reached [Q]."""
+    group_points, n, v, base, rough, metal = surface
+    chunk_lights = jax.tree_util.tree_map(lambda x: x[indices], padded)
+    n, v, material = _broadcast_surface(n, v, base, rough, metal)
+    visibility = None if group_shadow is None else jnp.take(group_shadow, jnp.minimum(indices, n_shadowed), axis=1)
+    radiance = light_radiance(group_points, n, v, material, chunk_lights, visibility, distribution=distribution)
+    reached = light_reaches(chunk_lights, group_points) & (indices < n_lights)[None]
+    return jnp.sum(radiance, axis=1), jnp.sum(reached, axis=1, dtype=jnp.float32)
+
+
+def _padded_light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
+    """:func:`accumulate_light_lists` over every slot of every list (a scan over the C / chunk slot
+    chunks): the differentiable form, whose cost is G · Q · C evaluations."""
+    n_groups, n_per_group = surface[0].shape[:2]
+    slots = _slots(lists, lights, chunk)[rows].transpose(1, 0, 2)  # [n_chunks, G, chunk]
+    padded = _pad_lights(lights, 1)
+    shadow, n_shadowed = _with_unshadowed(shadow, n_groups, n_per_group)
 
     @jax.checkpoint
     def step(carry, indices):
         total, count = carry
-        radiance, reached = jax.vmap(group)(points, normals, views, base_color, roughness, metallic, shadow, indices)
+        group = lambda s, sh, i: _group_sums(s, sh, i, padded, lights.count, n_shadowed, distribution)
+        radiance, reached = jax.vmap(group)(surface, shadow, indices)
         return (total + radiance, count + reached), None
 
     zeros = (jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32))
     (total, reached), _ = jax.lax.scan(step, zeros, slots)
     return total, reached
+
+
+def _work_list_light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
+    """:func:`accumulate_light_lists` over the chunks that hold a light (its docstring): groups sorted by
+    list length, in blocks of ``items`` groups, each block looping over its longest list's chunks."""
+    n_groups, n_per_group = surface[0].shape[:2]
+    slots = _slots(lists, lights, chunk)  # [R, n_chunks, chunk]
+    n_chunks = slots.shape[1]
+    # Chunks up to the last one holding a light (holes inside a list are evaluated as zero lights).
+    used = jnp.max(jnp.where(jnp.any(slots < lights.count, axis=2), jnp.arange(1, n_chunks + 1), 0), axis=1)[rows]
+    items = max(1, min(WORK_PER_STEP // (n_per_group * chunk), n_groups))
+    n_blocks = -(-n_groups // items)
+    # Longest lists first, padded to whole blocks with groups that use no chunk.
+    order = jnp.argsort(-jnp.pad(used, (0, n_blocks * items - n_groups)), stable=True)
+    source = jnp.minimum(order, n_groups - 1)
+    block_used = jnp.pad(used, (0, n_blocks * items - n_groups))[order].reshape(n_blocks, items)[:, 0]
+    blocked = lambda x: x[source].reshape((n_blocks, items) + x.shape[1:])
+    padded = _pad_lights(lights, 1)
+    shadow, n_shadowed = _with_unshadowed(shadow, n_groups, n_per_group)
+    sums = jax.vmap(lambda s, sh, i: _group_sums(s, sh, i, padded, lights.count, n_shadowed, distribution))
+
+    def block(_, xs):
+        block_surface, block_shadow, block_slots, chunks = xs
+
+        def step(carry):
+            j, total, count = carry
+            radiance, reached = sums(block_surface, block_shadow, block_slots[:, j])
+            return j + 1, total + radiance, count + reached
+
+        zeros = (jnp.int32(0), jnp.zeros((items, n_per_group, 3), jnp.float32),
+                 jnp.zeros((items, n_per_group), jnp.float32))
+        _, total, count = jax.lax.while_loop(lambda carry: carry[0] < chunks, step, zeros)
+        return None, (total, count)
+
+    block_slots = slots[rows[source]].reshape((n_blocks, items) + slots.shape[1:])
+    xs = (jax.tree_util.tree_map(blocked, surface), None if shadow is None else blocked(shadow), block_slots, block_used)
+    _, (total, reached) = jax.lax.scan(block, None, xs)
+    unsort = jnp.argsort(order)[:n_groups]
+    return (total.reshape((n_blocks * items, n_per_group, 3))[unsort],
+            reached.reshape((n_blocks * items, n_per_group))[unsort])
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6))
+def _light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
+    return _work_list_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+
+
+def _light_lists_forward(surface, lights, lists, rows, shadow, distribution, chunk):
+    result = _work_list_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+    return result, (surface, lights, lists, rows, shadow)
+
+
+def _light_lists_backward(distribution, chunk, saved, cotangent):
+    surface, lights, lists, rows, shadow = saved
+    _, pullback = jax.vjp(lambda s, l, sh: _padded_light_lists(s, l, lists, rows, sh, distribution, chunk),
+                          surface, lights, shadow)
+    d_surface, d_lights, d_shadow = pullback(cotangent)
+    no_cotangent = lambda x: np.zeros(x.shape, jax.dtypes.float0)
+    return d_surface, d_lights, no_cotangent(lists), no_cotangent(rows), d_shadow
+
+
+_light_lists.defvjp(_light_lists_forward, _light_lists_backward)
 
 
 def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribution: str, light_chunk: int | None,
@@ -215,7 +329,7 @@ def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribut
 def view_directions(points, eye):
     """Unit vectors [P, 3] from ``points`` [P, 3] towards ``eye`` [3] (finite at the eye itself)."""
     to_eye = jnp.asarray(eye, jnp.float32) - points
-    return to_eye / jnp.maximum(jnp.linalg.norm(to_eye, axis=-1, keepdims=True), _VIEW_LENGTH_MIN)
+    return to_eye / jnp.maximum(jnp.sqrt(dot3(to_eye, to_eye, keepdims=True)), _VIEW_LENGTH_MIN)
 
 
 def compose_radiance(coverage, direct, emission, base_color, metallic, *, ambient, background):

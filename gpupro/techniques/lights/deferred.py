@@ -72,7 +72,7 @@ HDR = Buffer("hdr", "linear radiance", "RGB")
 
 SHADING_OPTIONS = (
     Option("distribution", "ggx", one_of(*DISTRIBUTIONS), "microfacet distribution of the specular lobe"),
-    Option("light_chunk", None, optional(integer(1)), "lights per scan step (peak memory [H·W, chunk, 3]); none: 8 on GPUs, 64 on CPUs"),
+    Option("light_chunk", None, optional(integer(1)), "lights per scan step (peak memory [H·W, chunk, 3]); none: 32 on GPUs, 64 on CPUs"),
 )
 SHADING_PARAMS = (
     Param("ambient", (0.0, 0.0, 0.0), "W/(m² sr)", "constant ambient radiance, reflected by the diffuse lobe", lower=0.0),

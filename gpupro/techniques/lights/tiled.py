@@ -37,14 +37,13 @@ spots; with no overflow, every such light is listed, the bounds being conservati
 
 from __future__ import annotations
 
-import math
-
 import jax.numpy as jnp
 
 from gpupro.numerics import einsum
 from gpupro.raster import surface_from_fragments
 from gpupro.scene.camera import Camera
-from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
+from gpupro.scene.lights import Lights
+from gpupro.shading.light_bounds import light_spheres
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
 from gpupro.technique import BOOLEAN, Capacity, Counter, Option, Technique, integer, register
 from gpupro.techniques.lights.deferred import (
@@ -52,27 +51,6 @@ from gpupro.techniques.lights.deferred import (
 )
 from gpupro.techniques.raster.gbuffer import SURFACE, fragments_from
 from gpupro.techniques.raster.raster import FRAGMENTS
-
-_COS_45 = math.sqrt(0.5)
-
-
-def light_spheres(lights: Lights):
-    """Bounding spheres of the lights' influence (world units): ``(centre [N, 3], radius [N])``.
-
-    Point lights: the range sphere. Spot lights: the smallest axis-centred sphere holding the spherical
-    sector of half-angle = outer angle and radius = range (module docstring). Directional lights get
-    radius ``inf`` (callers treat them as covering everything).
-    """
-    cos_outer = lights.cos_outer
-    sin_outer = jnp.sqrt(jnp.maximum(1.0 - cos_outer * cos_outer, 0.0))
-    wide = cos_outer < _COS_45
-    offset = jnp.where(wide, lights.range * cos_outer, lights.range / (2.0 * cos_outer))
-    spot_radius = jnp.where(wide, lights.range * sin_outer, offset)
-    spot = lights.kind == SPOT
-    centre = lights.position + jnp.where(spot, offset, 0.0)[:, None] * lights.direction
-    radius = jnp.where(spot, spot_radius, lights.range)
-    return centre, jnp.where(lights.kind == DIRECTIONAL, jnp.inf, radius)
-
 
 def screen_bounds(centre, radius, camera: Camera):
     """Conservative pixel rectangles and view-depth extents of N spheres seen by ``camera``.

@@ -1,0 +1,552 @@
+"""Clustered deferred and clustered forward shading: per-cluster light lists, clusters being the occupied
+cells of a (tile, exponential depth slice, normal direction) grid.
+
+Source: Olsson's thesis (seed), Paper II, "Clustered Deferred and Forward Shading" (Olsson, Billeter &
+Assarsson, HPG 2012): sec. 3 (algorithm steps 2–5), 3.1 (cluster key, eqs. 1–2, Fig. 4), 3.2 (unique
+clusters, explicit bounds), 3.3 (light tree and normal-cone back-face culling, Fig. 7), 3.4 (shading),
+4.1–4.4 (key packing, sorting, light assignment) and the ClusteredForward variant of sec. 4. In view
+space (camera at the origin looking down −z, view depth d = −z):
+
+1. Cluster key of each covered sample at pixel (x, y) (row y from the top): tile (i, j) = (⌊x/t⌋, ⌊y/t⌋)
+   and depth slice
+       k = ⌊ log(d / near) / log(1 + 2 tan θ / S_y) ⌋,   S_y = ⌈H / t⌉ tile rows, 2θ the vertical field of view,
+   so slice k spans near_k ≤ d < near_{k+1} with near_k = near (1 + 2 tan θ / S_y)^k (eq. 1): sub-frusta
+   about as deep as they are wide. (Eq. 2 of the seed prints a ceiling; with the ceiling slice k would
+   span (near_{k−1}, near_k]; the floor keeps near_0 = near as the first slice's near plane.) An
+   orthographic camera gets uniform slices h = ortho_height / S_y deep: k = ⌊(d − near) / h⌋. With
+   ``normal_bins`` = X > 0 the key also holds the sample's normal direction: the cube face of its major
+   axis and an X × X grid on that face (Fig. 4; 6X² bins, X = 3 gives the paper's 54). Packed
+   key = ((k · 6X² + bin) · S_y + j) · S_x + i in an int32 (k clamped to the largest slice that fits).
+2. Occupied clusters: the keys are sorted and each one without an identical predecessor starts a
+   cluster (sort + compaction, the paper's Fig. 5); its rank is the cluster index, written back to its
+   pixels. Clusters past ``cluster_capacity`` are dropped and counted (``cluster_overflow``; the entry
+   points grow the capacity to ``clusters``).
+3. Cluster bounds (view space): implicit (``bounds = "implicit"``): the AABB of the 8 corners of the
+   tile's sub-frustum between near_k and near_{k+1}, widened by 10⁻³ in depth against rounding;
+   explicit (``"explicit"``): the min/max of the member samples' positions. Optional normal cone
+   (axis a, half-angle α): from the key's bin (``normal_cones = "key"``: the cone from the cell's centre
+   direction through its farthest corner) or from the samples (``"samples"``: a = normalised mean
+   normal, α = the largest angle between a and a member normal).
+4. Light assignment (:func:`assign_lights`), light i kept for cluster c when
+       the cluster's AABB overlaps the AABB of the light's bounding sphere (the leaf box), and
+       the AABB meets the light's true volume (:func:`gpupro.shading.light_bounds.box_meets_light`:
+       Arvo's test on the range ball and, for spots, the cone), and
+       the light is not back-facing: ω ≤ π/2 + α + δ (Fig. 7), with ω the angle between a and the
+       direction d_i from the AABB's centre to the light, δ = asin(R / |d_i|) the half-angle of the cone
+       from the light around the AABB's bounding sphere of radius R (δ = 0 for directional lights);
+       ω > π/2 + α + δ means n · l < 0 for every sample, whose radiance is then exactly 0.
+   ``assignment = "brute_force"`` tests every (cluster, light) pair; ``"tree"`` finds the same pairs
+   through the per-frame light tree of :mod:`gpupro.techniques.lights.light_tree` (Morton-sorted
+   lights, B = ``tree_branching`` children per node, level-by-level frontier of ``frontier_capacity``
+   pairs). Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
+   ascending light indices; the excess is dropped and counted (``cluster_list_overflow``; grown to
+   ``max_lights_per_cluster``).
+5. Shading: each pixel evaluates the list of its cluster with the per-light arithmetic of brute force
+   (:func:`gpupro.shading.light_loop.accumulate_light_lists`):
+       L_o(x) = L_e + L_a · (1 − m) · c + Σ_{i ∈ list(cluster(x))} f(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i
+   Every culled light has zero radiance at every sample of the cluster, so the image is ``deferred``'s.
+   Clustered forward clusters and shades the rasterizer's fragments (the depth pre-pass of
+   ClusteredForward is the rasterizer's visibility).
+
+Counters: those of ``tiled_deferred`` over clusters (``lighting_computations`` Σ_covered |list|,
+``exact_lighting_computations`` Σ_covered of listed lights that reach the pixel, ``false_positive_rate``,
+``light_list_bytes``), per-stage work (``clusters`` found, ``cluster_light_tests`` (cluster, light) pairs
+decided, ``tree_nodes_tested``, ``lights_backface_culled``) and each capacity's overflow and need.
+"""
+
+from __future__ import annotations
+
+import typing
+
+import jax
+import jax.numpy as jnp
+
+from gpupro.numerics import einsum
+from gpupro.raster import surface_from_fragments
+from gpupro.scene.camera import Camera
+from gpupro.scene.lights import DIRECTIONAL, Lights
+from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, transform_lights
+from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
+from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
+from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
+from gpupro.techniques.lights.light_tree import build_light_tree, traverse
+from gpupro.techniques.lights.tiled import TILED_COUNTERS, fill_light_lists, tile_grid
+from gpupro.techniques.raster.gbuffer import SURFACE, fragments_from
+from gpupro.techniques.raster.raster import FRAGMENTS
+
+NO_KEY = jnp.iinfo(jnp.int32).max
+"""The key of uncovered pixels (sorts after every cluster)."""
+
+DEPTH_WIDENING = 1e-3
+"""Relative widening of implicit slice depths (the log of eq. 2 rounds)."""
+
+CONE_MARGIN = 1e-3
+"""Radians added to the back-face threshold π/2 + α + δ against rounding."""
+
+
+class Clusters(typing.NamedTuple):
+    """C cluster slots: ``keys`` int32 [C] (:data:`NO_KEY` in empty slots), ``valid`` bool [C], view-space
+    AABB ``lower``, ``upper`` [C, 3] (world units), normal cone ``axis`` [C, 3] and ``half_angle`` [C]
+    (radians; π: no cone), ``count`` int32: occupied clusters found (may exceed C)."""
+
+    keys: jnp.ndarray
+    valid: jnp.ndarray
+    lower: jnp.ndarray
+    upper: jnp.ndarray
+    axis: jnp.ndarray
+    half_angle: jnp.ndarray
+    count: jnp.ndarray
+
+
+def to_view(camera: Camera, points, *, vectors: bool = False):
+    """World points (or direction vectors) [..., 3] in view space."""
+    view = camera.view_matrix()
+    moved = einsum("ij,...j->...i", view[:3, :3], jnp.asarray(points, jnp.float32))
+    return moved if vectors else moved + view[:3, 3]
+
+
+def _slice_scale(camera: Camera, tiles_y: int):
+    """log(1 + 2 tan θ / S_y) for a perspective camera, the slice depth h = ortho_height / S_y otherwise."""
+    if camera.projection == "perspective":
+        return jnp.log1p(2.0 * jnp.tan(0.5 * camera.fov_y) / tiles_y)
+    return camera.ortho_height / tiles_y
+
+
+def depth_slices(depth, camera: Camera, *, tiles_y: int, last: int):
+    """Slice index k int32 (eq. 2 with a floor, module docstring) of view depths ``depth`` [...] (world
+    units), clamped to [0, ``last``]."""
+    scale = _slice_scale(camera, tiles_y)
+    depth = jnp.maximum(jnp.asarray(depth, jnp.float32), 1e-30)
+    if camera.projection == "perspective":
+        k = jnp.floor(jnp.log(depth / camera.near) / scale)
+    else:
+        k = jnp.floor((depth - camera.near) / scale)
+    return jnp.clip(jnp.nan_to_num(k, nan=0.0), 0, last).astype(jnp.int32)
+
+
+def slice_depths(k, camera: Camera, *, tiles_y: int):
+    """[near_k, near_{k+1}] (world units) of slices ``k`` [...], widened by :data:`DEPTH_WIDENING`;
+    slice 0 reaches the eye."""
+    scale = _slice_scale(camera, tiles_y)
+    k = jnp.asarray(k, jnp.float32)
+    if camera.projection == "perspective":
+        near, far = camera.near * jnp.exp(k * scale), camera.near * jnp.exp((k + 1.0) * scale)
+    else:
+        near, far = camera.near + k * scale, camera.near + (k + 1.0) * scale
+    return jnp.where(k == 0, 0.0, near * (1.0 - DEPTH_WIDENING)), far * (1.0 + DEPTH_WIDENING)
+
+
+def normal_bins_of(normals, *, bins: int):
+    """Cube-face bin int32 [...] of view-space unit normals [..., 3]: face 2m + (n_m < 0) of the major
+    axis m, then an X × X grid (X = ``bins``) over the other two coordinates divided by |n_m|."""
+    major = jnp.argmax(jnp.abs(normals), axis=-1)
+    face = 2 * major + (jnp.take_along_axis(normals, major[..., None], -1)[..., 0] < 0)
+    u, v = _face_coordinates(normals, major)
+    cell = lambda t: jnp.clip(jnp.floor((t + 1.0) * 0.5 * bins), 0, bins - 1).astype(jnp.int32)
+    return (face * bins + cell(u)) * bins + cell(v)
+
+
+def _face_coordinates(normals, major):
+    """(u, v): the two non-major coordinates (in axis order) over |n_major|."""
+    scale = 1.0 / jnp.maximum(jnp.take_along_axis(jnp.abs(normals), major[..., None], -1)[..., 0], 1e-30)
+    first = jnp.where(major == 0, 1, 0)
+    second = jnp.where(major == 2, 1, 2)
+    pick = lambda axis: jnp.take_along_axis(normals, axis[..., None], -1)[..., 0] * scale
+    return pick(first), pick(second)
+
+
+def bin_cones(bin_index, *, bins: int):
+    """Implicit normal cone (axis [..., 3], half-angle [...] radians) of cube-face bins (Fig. 4): the
+    direction of the cell's centre and the largest angle to its corners, plus :data:`CONE_MARGIN`."""
+    face, cell = bin_index // (bins * bins), bin_index % (bins * bins)
+    major, negative = face // 2, face % 2
+    edges = lambda c: (-1.0 + 2.0 * c / bins, -1.0 + 2.0 * (c + 1) / bins)
+    u0, u1 = edges(cell // bins)
+    v0, v1 = edges(cell % bins)
+    basis = jnp.eye(3, dtype=jnp.float32)
+    first, second = jnp.where(major == 0, 1, 0), jnp.where(major == 2, 1, 2)
+
+    def direction(u, v):
+        d = (jnp.where(negative == 1, -1.0, 1.0)[..., None] * basis[major] + u[..., None] * basis[first]
+             + v[..., None] * basis[second])
+        return d / jnp.linalg.norm(d, axis=-1, keepdims=True)
+
+    axis = direction(0.5 * (u0 + u1), 0.5 * (v0 + v1))
+    corners = [direction(u, v) for u in (u0, u1) for v in (v0, v1)]
+    cos_min = jnp.min(jnp.stack([jnp.sum(axis * c, axis=-1) for c in corners]), axis=0)
+    return axis, jnp.arccos(jnp.clip(cos_min, -1.0, 1.0)) + CONE_MARGIN
+
+
+def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int):
+    """Packed int32 keys [H, W] (module docstring, step 1) of covered samples, :data:`NO_KEY` elsewhere.
+    ``view_position``, ``view_normal`` [H, W, 3] view space; ``coverage`` [H, W]; static ``tile`` pixels,
+    ``normal_bins`` X (0: position only). Returns ``(keys, last)``: ``last`` the largest slice (Python int)."""
+    height, width = jnp.shape(coverage)
+    tiles_y, tiles_x = tile_grid((height, width), tile=tile)
+    n_bins = 6 * normal_bins * normal_bins if normal_bins else 1
+    last = (2**31 - 2) // (tiles_y * tiles_x * n_bins) - 1
+    k = depth_slices(-view_position[..., 2], camera, tiles_y=tiles_y, last=last)
+    bins = normal_bins_of(view_normal, bins=normal_bins) if normal_bins else 0
+    rows = jnp.arange(height, dtype=jnp.int32)[:, None] // tile
+    cols = jnp.arange(width, dtype=jnp.int32)[None, :] // tile
+    keys = ((k * n_bins + bins) * tiles_y + rows) * tiles_x + cols
+    return jnp.where(jnp.asarray(coverage) > 0, keys, NO_KEY), last
+
+
+def find_clusters(keys, *, capacity: int):
+    """The occupied clusters of ``keys`` [P] int32 by sort and compaction (step 2).
+
+    Returns ``(cluster_keys int32 [capacity] ascending, NO_KEY in empty slots; pixel_cluster int32 [P],
+    the cluster index of each sample, −1 for uncovered samples and those of clusters past the capacity;
+    count int32, the clusters found)``.
+    """
+    order = jnp.argsort(keys)
+    ordered = keys[order]
+    occupied = ordered != NO_KEY
+    first = occupied & jnp.concatenate([jnp.ones(1, bool), ordered[1:] != ordered[:-1]])
+    rank = jnp.cumsum(first, dtype=jnp.int32) - 1
+    slot = jnp.where(first, rank, capacity)
+    unique = jnp.full((capacity,), NO_KEY, jnp.int32).at[slot].set(ordered, mode="drop")
+    member = jnp.where(occupied & (rank < capacity), rank, -1)
+    pixel_cluster = jnp.zeros_like(member).at[order].set(member)
+    return unique, pixel_cluster, jnp.sum(first, dtype=jnp.int32)
+
+
+def implicit_bounds(keys, camera: Camera, *, shape, tile: int, normal_bins: int, last: int):
+    """View-space AABBs ``(lower, upper)`` [C, 3] of the sub-frusta of packed ``keys`` [C] (step 3); the
+    whole space for the clamped slice ``last``. ``shape`` (H, W) and the static options as in
+    :func:`cluster_keys`."""
+    height, width = shape
+    tiles_y, tiles_x = tile_grid(shape, tile=tile)
+    n_bins = 6 * normal_bins * normal_bins if normal_bins else 1
+    col, row, k = keys % tiles_x, (keys // tiles_x) % tiles_y, keys // (tiles_x * tiles_y * n_bins)
+    near, far = slice_depths(k, camera, tiles_y=tiles_y)
+    ndc_x = jnp.stack([col, col + 1], -1).astype(jnp.float32) * (2.0 * tile / width) - 1.0
+    ndc_y = 1.0 - jnp.stack([row + 1, row], -1).astype(jnp.float32) * (2.0 * tile / height)
+    if camera.projection == "perspective":
+        half_y = jnp.tan(0.5 * camera.fov_y)
+        depths = jnp.stack([near, far], -1)[..., None, :]  # [C, 1, 2]: corners at both depths
+    else:
+        half_y, depths = 0.5 * camera.ortho_height, jnp.ones(near.shape + (1, 1), jnp.float32)
+    xs = (ndc_x * half_y * camera.aspect)[..., :, None] * depths  # [C, 2, 2]
+    ys = (ndc_y * half_y)[..., :, None] * depths
+    flat = lambda a: a.reshape(a.shape[0], -1)
+    lower = jnp.stack([flat(xs).min(1), flat(ys).min(1), -far], -1)
+    upper = jnp.stack([flat(xs).max(1), flat(ys).max(1), -near], -1)
+    everywhere = (k >= last)[:, None]
+    return jnp.where(everywhere, -jnp.inf, lower), jnp.where(everywhere, jnp.inf, upper)
+
+
+def explicit_bounds(view_position, pixel_cluster, *, capacity: int):
+    """Min/max ``(lower, upper)`` [capacity, 3] of the samples ``view_position`` [P, 3] of each cluster
+    (``pixel_cluster`` [P], −1: none); +inf/−inf for empty slots."""
+    segment = jnp.where(pixel_cluster < 0, capacity, pixel_cluster)
+    lower = jax.ops.segment_min(view_position, segment, num_segments=capacity + 1)[:capacity]
+    upper = jax.ops.segment_max(view_position, segment, num_segments=capacity + 1)[:capacity]
+    return lower, upper
+
+
+def explicit_cones(view_normal, pixel_cluster, *, capacity: int):
+    """Normal cones of the samples' unit normals [P, 3] of each cluster: axis = normalised mean normal
+    [capacity, 3], half-angle [capacity] = the largest angle to a member normal (+ :data:`CONE_MARGIN`;
+    π where the mean is nearly zero or the slot is empty)."""
+    segment = jnp.where(pixel_cluster < 0, capacity, pixel_cluster)
+    total = jax.ops.segment_sum(view_normal, segment, num_segments=capacity + 1)
+    length = jnp.linalg.norm(total, axis=-1, keepdims=True)
+    axis = total / jnp.maximum(length, 1e-30)
+    cosine = jnp.sum(view_normal * axis[segment], axis=-1)
+    cos_min = jax.ops.segment_min(cosine, segment, num_segments=capacity + 1)
+    angle = jnp.arccos(jnp.clip(cos_min, -1.0, 1.0)) + CONE_MARGIN
+    angle = jnp.where((length[:, 0] > 1e-3) & jnp.isfinite(cos_min), angle, jnp.pi)
+    return axis[:capacity], angle[:capacity]
+
+
+def build_clusters(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int,
+                   bounds: str, normal_cones: str, cluster_capacity: int):
+    """Steps 1–3: keys, occupied clusters and their bounds. ``view_position``, ``view_normal`` [H, W, 3]
+    (view space), ``coverage`` [H, W]; static options as in the specification. Returns ``(clusters,
+    pixel_cluster int32 [H·W])`` (:class:`Clusters`)."""
+    shape = jnp.shape(coverage)
+    keys, last = cluster_keys(view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins)
+    unique, pixel_cluster, count = find_clusters(keys.reshape(-1), capacity=cluster_capacity)
+    valid = unique != NO_KEY
+    points, normals = view_position.reshape(-1, 3), view_normal.reshape(-1, 3)
+    if bounds == "explicit":
+        lower, upper = explicit_bounds(points, pixel_cluster, capacity=cluster_capacity)
+    else:
+        lower, upper = implicit_bounds(jnp.where(valid, unique, 0), camera, shape=shape, tile=tile,
+                                       normal_bins=normal_bins, last=last)
+    if normal_cones == "key":
+        if not normal_bins:
+            raise ValueError("clustered shading: normal_cones = 'key' needs normal_bins >= 1 (the key holds no normal)")
+        tiles_y, tiles_x = tile_grid(shape, tile=tile)
+        bin_index = (unique // (tiles_y * tiles_x)) % (6 * normal_bins * normal_bins)
+        axis, half_angle = bin_cones(bin_index, bins=normal_bins)
+    elif normal_cones == "samples":
+        axis, half_angle = explicit_cones(normals, pixel_cluster, capacity=cluster_capacity)
+    else:
+        axis, half_angle = jnp.zeros((cluster_capacity, 3), jnp.float32), jnp.full((cluster_capacity,), jnp.pi)
+    lower, upper = jnp.where(valid[:, None], lower, jnp.inf), jnp.where(valid[:, None], upper, -jnp.inf)
+    return Clusters(unique, valid, lower, upper, axis, jnp.where(valid, half_angle, jnp.pi), count), pixel_cluster
+
+
+def light_leaf_boxes(lights_view: Lights):
+    """AABBs ``(lower, upper)`` [N, 3] of the lights' bounding spheres (:func:`light_spheres`), widened
+    by :data:`SLACK`; infinite for directional lights. Also returns the sphere centres [N, 3]."""
+    centre, radius = light_spheres(lights_view)
+    reach = radius[:, None] + SLACK * (jnp.abs(centre) + radius[:, None])
+    return centre - reach, centre + reach, centre
+
+
+def backfacing(lower, upper, axis, half_angle, lights: Lights):
+    """Whether each light (K pairs: boxes [K, 3], cones [K, 3], [K], lights K) lies behind every normal
+    of its cluster's cone: ω > π/2 + α + δ (module docstring, step 4). bool [K]."""
+    centre = 0.5 * (lower + upper)
+    radius = 0.5 * jnp.linalg.norm(upper - lower, axis=-1)
+    directional = lights.kind == DIRECTIONAL
+    towards = jnp.where(directional[:, None], -lights.direction, lights.position - centre)
+    distance = jnp.linalg.norm(towards, axis=-1)
+    cos_omega = jnp.sum(towards * axis, axis=-1) / jnp.maximum(distance, 1e-30)
+    omega = jnp.arccos(jnp.clip(cos_omega, -1.0, 1.0))
+    delta = jnp.where(directional, 0.0, jnp.where(distance > radius, jnp.arcsin(jnp.clip(radius / distance, 0.0, 1.0)), jnp.pi))
+    return omega > 0.5 * jnp.pi + half_angle + delta + CONE_MARGIN
+
+
+def pair_tests(clusters: Clusters, lights_view: Lights, leaf_lower, leaf_upper, cluster, light):
+    """The leaf test of step 4 for K (cluster, light) index pairs (int32 [K] each): ``(meets, culled)``
+    bool [K]: the bounds meet, and the bounds meet but the light is back-facing."""
+    pick = lambda x: x[light]
+    each = jax.tree_util.tree_map(pick, lights_view)
+    lower, upper = clusters.lower[cluster], clusters.upper[cluster]
+    boxed = jnp.all((lower <= pick(leaf_upper)) & (pick(leaf_lower) <= upper), axis=-1)
+    one = lambda lo, up, single: box_meets_light(lo[None], up[None], jax.tree_util.tree_map(lambda x: x[None], single))[0, 0]
+    meets = boxed & jax.vmap(one)(lower, upper, each) & clusters.valid[cluster]
+    behind = backfacing(lower, upper, clusters.axis[cluster], clusters.half_angle[cluster], each)
+    return meets & ~behind, meets & behind
+
+
+def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int):
+    """Count → scan → fill of K (cluster, light) pairs where ``hit`` into int32 [clusters, capacity]
+    lists (ascending light indices, −1 in empty slots) and the int32 [clusters] counts before truncation."""
+    cluster = jnp.where(hit, cluster, clusters)
+    cluster, light = jax.lax.sort((cluster, light), num_keys=2)
+    counts = jax.ops.segment_sum(jnp.ones_like(cluster), cluster, num_segments=clusters + 1)
+    starts = jnp.cumsum(counts) - counts
+    slot = jnp.arange(cluster.shape[0], dtype=jnp.int32) - starts[cluster]
+    slot = jnp.where(cluster < clusters, slot, capacity)
+    lists = jnp.full((clusters, capacity), -1, jnp.int32).at[cluster, slot].set(light, mode="drop")
+    return lists, counts[:clusters].astype(jnp.int32)
+
+
+def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignment: str,
+                  cluster_light_capacity: int, tree_branching: int, frontier_capacity: int):
+    """Step 4: per-cluster light lists, by brute force or through the light tree (the same lists).
+
+    ``lights`` N lights (world space); ``camera`` gives the view transform; ``clusters`` C slots;
+    static: ``assignment`` ("tree" or "brute_force"), ``cluster_light_capacity``, ``tree_branching``,
+    ``frontier_capacity``. Returns ``(lists int32 [C, L], counts int32 [C], counters)``, L =
+    min(cluster_light_capacity, N), counts before truncation; counters ``cluster_light_tests``,
+    ``tree_nodes_tested``, ``lights_backface_culled``, ``frontier_overflow``, ``max_frontier``.
+    """
+    n_clusters, n_lights = clusters.valid.shape[0], lights.count
+    capacity = min(cluster_light_capacity, n_lights)
+    zero = jnp.int32(0)
+    if n_lights == 0:
+        return (jnp.zeros((n_clusters, 0), jnp.int32), jnp.zeros((n_clusters,), jnp.int32),
+                dict(cluster_light_tests=zero, tree_nodes_tested=zero, lights_backface_culled=zero,
+                     frontier_overflow=zero, max_frontier=zero))
+    lights_view = transform_lights(lights, camera.view_matrix())
+    leaf_lower, leaf_upper, centre = light_leaf_boxes(lights_view)
+    tests = lambda c, l: pair_tests(clusters, lights_view, leaf_lower, leaf_upper, c, l)
+    if assignment == "brute_force":
+        cluster = jnp.repeat(jnp.arange(n_clusters, dtype=jnp.int32), n_lights)
+        light = jnp.tile(jnp.arange(n_lights, dtype=jnp.int32), n_clusters)
+        hit, culled = tests(cluster, light)
+        lists, counts = fill_light_lists(hit.reshape(n_clusters, n_lights), capacity)
+        stats = dict(cluster_light_tests=jnp.sum(clusters.valid, dtype=jnp.int32) * n_lights,
+                     tree_nodes_tested=zero, frontier_overflow=zero, max_frontier=zero)
+    else:
+        tree = build_light_tree(leaf_lower, leaf_upper, centre, branching=tree_branching)
+        found = {}
+
+        def leaf_test(c, l):
+            hit, found["culled"] = tests(c, l)
+            return hit
+
+        cluster, light, hit, stats = traverse(tree, clusters.lower, clusters.upper, clusters.valid, leaf_test,
+                                              frontier_capacity=frontier_capacity)
+        culled = found["culled"] & (light >= 0)
+        lists, counts = fill_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters, capacity=capacity)
+        stats["cluster_light_tests"] = stats.pop("lights_tested")
+    stats["lights_backface_culled"] = jnp.sum(culled, dtype=jnp.int32)
+    return lists, counts, stats
+
+
+def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, camera: Camera, *, ambient, background,
+                        shadow=None, distribution: str, light_chunk: int | None):
+    """Step 5: every pixel shaded with the list of its cluster through the shared light loop.
+
+    ``surface`` G-buffer dict (:data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`, [H, W] or
+    [H, W, 3]); ``lists`` int32 [C, L]; ``pixel_cluster`` int32 [H·W] (−1: no cluster); ``shadow`` None
+    or [H, W, K]; static ``distribution``, ``light_chunk``. Returns ``(hdr [H, W, 3], reached [H·W])``:
+    ``reached`` counts the listed lights whose influence reaches each pixel.
+    """
+    shape = jnp.shape(surface["coverage"])
+    flat = lambda key: jnp.asarray(surface[key], jnp.float32).reshape((shape[0] * shape[1], 1) + jnp.shape(surface[key])[2:])
+    points = flat("position")
+    views = view_directions(points.reshape(-1, 3), camera.eye)[:, None, :]
+    direct, reached = accumulate_light_lists(
+        points, flat("normal"), views, flat("base_color"), flat("roughness"), flat("metallic"), lights, lists,
+        list_of_group=pixel_cluster,
+        shadow=None if shadow is None else jnp.asarray(shadow, jnp.float32).reshape(-1, 1, jnp.shape(shadow)[-1]),
+        distribution=distribution, light_chunk=light_chunk)
+    hdr = compose_radiance(surface["coverage"], direct.reshape(shape + (3,)), surface["emission"],
+                           surface["base_color"], surface["metallic"], ambient=ambient, background=background)
+    return hdr, reached[:, 0]
+
+
+def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
+                    distribution: str, light_chunk: int | None, tile: int, normal_bins: int, bounds: str,
+                    normal_cones: str, assignment: str, cluster_capacity: int, cluster_light_capacity: int,
+                    tree_branching: int, frontier_capacity: int):
+    """Clustered shading of per-pixel surfaces (steps 1–5 of the module docstring).
+
+    ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
+    (world space, as in ``shade_deferred``); ``lights`` N lights; ``camera`` the scene camera (its eye
+    shades, its view transform and projection define the clusters); ``ambient``, ``background`` [3];
+    ``shadow`` None or [H, W, K]; the static options are those of the specification.
+    Returns ``(hdr float32 [H, W, 3], counters)`` (module docstring).
+    """
+    coverage = surface["coverage"]
+    view_position = to_view(camera, surface["position"])
+    view_normal = to_view(camera, surface["normal"], vectors=True)
+    clusters, pixel_cluster = build_clusters(view_position, view_normal, coverage, camera, tile=tile,
+                                             normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
+                                             cluster_capacity=cluster_capacity)
+    lists, counts, stats = assign_lights(lights, camera, clusters, assignment=assignment,
+                                         cluster_light_capacity=cluster_light_capacity,
+                                         tree_branching=tree_branching, frontier_capacity=frontier_capacity)
+    hdr, reached = shade_cluster_lists(surface, lists, pixel_cluster, lights, camera, ambient=ambient,
+                                       background=background, shadow=shadow, distribution=distribution,
+                                       light_chunk=light_chunk)
+    covered = (jnp.asarray(coverage) > 0).reshape(-1) & (pixel_cluster >= 0)
+    evaluated = jnp.minimum(counts, lists.shape[1])[jnp.maximum(pixel_cluster, 0)]
+    lighting = jnp.sum(jnp.where(covered, evaluated, 0).astype(jnp.float32))
+    exact = jnp.sum(jnp.where(covered, reached, 0.0))
+    return hdr, {
+        "lighting_computations": lighting,
+        "exact_lighting_computations": exact,
+        "false_positive_rate": jnp.where(lighting > 0, 1.0 - exact / jnp.maximum(lighting, 1.0), 0.0),
+        "light_list_bytes": jnp.int32(4 * lists.size),
+        "clusters": clusters.count,
+        "cluster_overflow": jnp.maximum(clusters.count - cluster_capacity, 0),
+        "cluster_list_overflow": jnp.sum(jnp.maximum(counts - lists.shape[1], 0)),
+        "max_lights_per_cluster": jnp.max(counts, initial=0),
+        **stats,
+        "lights": jnp.int32(lights.count),
+    }
+
+
+def _shade(params, surface, scene, shadow, options):
+    return shade_clustered(surface, scene.lights, scene.camera, ambient=params["ambient"],
+                           background=params["background"], shadow=shadow, **options)
+
+
+def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, normal_bins, bounds, normal_cones,
+                   assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity):
+    """Clustered deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
+    options = dict(distribution=distribution, light_chunk=light_chunk, tile=tile, normal_bins=normal_bins,
+                   bounds=bounds, normal_cones=normal_cones, assignment=assignment, cluster_capacity=cluster_capacity,
+                   cluster_light_capacity=cluster_light_capacity, tree_branching=tree_branching,
+                   frontier_capacity=frontier_capacity)
+    hdr, counters = _shade(params, {key: inputs[key] for key in DEFERRED_INPUTS}, scene, inputs.get("shadow"), options)
+    return {"hdr": hdr}, counters
+
+
+def apply_forward(params, inputs, scene, *, distribution, light_chunk, tile, normal_bins, bounds, normal_cones,
+                  assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity):
+    """Clustered forward shading of the rasterizer's fragments → ``hdr`` [H, W, 3]."""
+    options = dict(distribution=distribution, light_chunk=light_chunk, tile=tile, normal_bins=normal_bins,
+                   bounds=bounds, normal_cones=normal_cones, assignment=assignment, cluster_capacity=cluster_capacity,
+                   cluster_light_capacity=cluster_light_capacity, tree_branching=tree_branching,
+                   frontier_capacity=frontier_capacity)
+    surface = surface_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera.eye)
+    hdr, counters = _shade(params, surface, scene, inputs.get("shadow"), options)
+    return {"hdr": hdr}, counters
+
+
+CLUSTERED_OPTIONS = SHADING_OPTIONS + (
+    Option("tile", 32, integer(1), "tile side in pixels; S_y = ⌈H / tile⌉ sets the depth slices (eq. 2)"),
+    Option("normal_bins", 0, integer(0, 16), "X × X normal cells per cube face in the key (0: position only; 3: the paper's 54 bins)"),
+    Option("bounds", "implicit", one_of("implicit", "explicit"), "cluster AABBs from the key's sub-frustum, or the min/max of the samples"),
+    Option("normal_cones", "none", one_of("none", "key", "samples"),
+           "back-face cull lights with each cluster's normal cone: none, from the key's normal bin, or from the samples' normals"),
+    Option("assignment", "tree", one_of("tree", "brute_force"), "light assignment through the light tree, or every cluster × light pair"),
+    Option("cluster_capacity", 1024, integer(1), "occupied clusters kept (grown by the entry points on overflow)"),
+    Option("cluster_light_capacity", 128, integer(1), "light slots per cluster list (grown by the entry points on overflow)"),
+    Option("tree_branching", 32, integer(2), "children per light-tree node (32 as in the paper)"),
+    Option("frontier_capacity", 16384, integer(1), "(cluster, node) pairs kept per tree level (grown by the entry points on overflow)"),
+)
+CLUSTERED_CAPACITIES = (
+    Capacity("cluster_capacity", "cluster_overflow", "occupied clusters; the samples of the excess get no lights",
+             needed="clusters"),
+    Capacity("cluster_light_capacity", "cluster_list_overflow", "lights listed per cluster; the excess is dropped",
+             needed="max_lights_per_cluster"),
+    Capacity("frontier_capacity", "frontier_overflow", "(cluster, tree node) pairs per traversal level; the excess "
+             "is dropped with its lights", needed="max_frontier"),
+)
+CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
+    Counter("light_list_bytes", "bytes of the per-cluster light index lists (4 × cluster slots × list slots)"),
+    Counter("clusters", "occupied clusters found (before truncation to cluster_capacity)"),
+    Counter("cluster_overflow", "occupied clusters past cluster_capacity"),
+    Counter("cluster_list_overflow", "lights dropped from full cluster lists"),
+    Counter("max_lights_per_cluster", "the longest cluster list before truncation"),
+    Counter("cluster_light_tests", "(cluster, light) pairs tested against the light volumes"),
+    Counter("tree_nodes_tested", "(cluster, inner tree node) box tests (0 for brute-force assignment)"),
+    Counter("lights_backface_culled", "(cluster, light) pairs whose bounds meet but whose light faces away from every normal of the cone"),
+    Counter("frontier_overflow", "(cluster, node) pairs dropped from full traversal frontiers"),
+    Counter("max_frontier", "the largest traversal frontier before truncation"),
+) + SHADING_COUNTERS[1:]
+CLUSTERED_NOTES = ("Missing from Paper II: the tile-local sort and the page tables (Pt) for finding unique clusters "
+                   "(here one global sort and compaction, Fig. 5), the packed light-index list (here a padded [C, L] "
+                   "array), the warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed "
+                   "capacity), MSAA and transparency. Spot lights are culled as cones, not as the paper's spheres.")
+CLUSTERED_EXAMPLE = {"tile": 8, "tree_branching": 4, "cluster_capacity": 256, "cluster_light_capacity": 32,
+                     "frontier_capacity": 1024}
+
+register(Technique(
+    id="clustered_deferred",
+    title="Clustered deferred shading: light lists per occupied (tile, depth slice, normal) cluster",
+    source="Olsson thesis, Paper II (Clustered Deferred and Forward Shading, HPG 2012): sec. 3.1–3.4, 4.1–4.4",
+    family="lights",
+    status="partial",
+    apply=apply_deferred,
+    inputs=tuple(b for b in SURFACE if b.name in DEFERRED_INPUTS) + (SHADOW,),
+    outputs=(HDR,),
+    options=CLUSTERED_OPTIONS,
+    params=SHADING_PARAMS,
+    capacities=CLUSTERED_CAPACITIES,
+    counters=CLUSTERED_COUNTERS,
+    reference="deferred",
+    example_options=CLUSTERED_EXAMPLE,
+    notes=CLUSTERED_NOTES,
+))
+
+register(Technique(
+    id="clustered_forward",
+    title="Clustered forward shading: the cluster light lists read while shading fragments",
+    source="Olsson thesis, Paper II (Clustered Deferred and Forward Shading, HPG 2012): ClusteredForward, sec. 4",
+    family="lights",
+    status="partial",
+    apply=apply_forward,
+    inputs=FRAGMENTS + (SHADOW,),
+    outputs=(HDR,),
+    options=CLUSTERED_OPTIONS,
+    params=SHADING_PARAMS,
+    capacities=CLUSTERED_CAPACITIES,
+    counters=CLUSTERED_COUNTERS,
+    reference="deferred",
+    example_options=CLUSTERED_EXAMPLE,
+    notes=CLUSTERED_NOTES + " Clustered forward here shades opaque fragments only, clustered on their own view "
+                            "depth (the rasterizer resolves visibility first, as the depth pre-pass does).",
+))

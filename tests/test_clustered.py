@@ -1,0 +1,208 @@
+"""Clustered deferred and forward shading (gpupro.techniques.lights.clustered, light_tree) against brute
+force: images, counters, cluster keys and bounds, the light tree and tree = brute-force assignment."""
+
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gpupro.scene import SPOT, make_lights, no_lights
+from gpupro.shading import light_reaches
+from gpupro.techniques.lights.clustered import (
+    NO_KEY, assign_lights, build_clusters, cluster_keys, find_clusters, implicit_bounds, shade_clustered,
+    slice_depths, to_view,
+)
+from gpupro.techniques.lights.deferred import shade_deferred
+from gpupro.techniques.lights.light_tree import build_light_tree, morton_codes
+from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights, ten_thousand_lights
+
+TILE = 16
+STATIC = ("distribution", "light_chunk", "tile", "normal_bins", "bounds", "normal_cones", "assignment",
+          "cluster_capacity", "cluster_light_capacity", "tree_branching", "frontier_capacity")
+DEFAULTS = dict(tile=TILE, normal_bins=0, bounds="implicit", normal_cones="none", assignment="tree",
+                cluster_capacity=512, cluster_light_capacity=128, tree_branching=4, frontier_capacity=4096)
+VARIANTS = {"implicit": {}, "explicit_sample_cones": dict(bounds="explicit", normal_cones="samples"),
+            "normal_bins_key_cones": dict(normal_bins=3, normal_cones="key")}
+
+clustered = jax.jit(shade_clustered, static_argnames=STATIC)
+brute = jax.jit(shade_deferred, static_argnames=("distribution", "light_chunk"))
+
+VIEW_POSITION = to_view(CAMERA, GBUFFER["position"])
+VIEW_NORMAL = to_view(CAMERA, GBUFFER["normal"], vectors=True)
+
+
+def lists_of(lights, **options):
+    """(clusters, pixel_cluster, lists, counts, stats) for the G-buffer with ``options`` over DEFAULTS."""
+    return _lists(lights, **{**DEFAULTS, **options})
+
+
+def _build_and_assign(lights, *, tile, normal_bins, bounds, normal_cones, assignment, cluster_capacity,
+                      cluster_light_capacity, tree_branching, frontier_capacity):
+    clusters, pixel_cluster = build_clusters(VIEW_POSITION, VIEW_NORMAL, GBUFFER["coverage"], CAMERA, tile=tile,
+                                             normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
+                                             cluster_capacity=cluster_capacity)
+    lists, counts, stats = assign_lights(lights, CAMERA, clusters, assignment=assignment,
+                                         cluster_light_capacity=cluster_light_capacity,
+                                         tree_branching=tree_branching, frontier_capacity=frontier_capacity)
+    return clusters, pixel_cluster, lists, counts, stats
+
+
+_lists = jax.jit(_build_and_assign, static_argnames=STATIC[2:])
+
+LIGHTS = {"none": no_lights(), "one": make_lights([SPOT], position=[(2.8, 5.0, 2.8)], direction=[(0, -1, 0)],
+                                                  range=6.0, outer_angle_degrees=30.0),
+          "hundred": mixed_lights()}
+
+
+def truly_reaching(lights):
+    """Σ over covered pixels of the lights whose influence reaches them."""
+    reaches = np.asarray(light_reaches(lights, jnp.asarray(GBUFFER["position"]).reshape(-1, 3)))
+    return float(np.sum(reaches & COVERED.reshape(-1, 1)))
+
+
+def shade_both(lights, **options):
+    fast, counters = clustered(GBUFFER, lights, CAMERA, **OPTIONS, **{**DEFAULTS, **options})
+    slow, slow_counters = brute(GBUFFER, lights, CAMERA.eye, **OPTIONS)
+    return np.asarray(fast), np.asarray(slow), counters, slow_counters
+
+
+def assert_consistent(counters, slow_counters, lights, *, backface: bool):
+    for overflow in ("cluster_overflow", "cluster_list_overflow", "frontier_overflow"):
+        assert int(counters[overflow]) == 0, overflow
+    lighting, exact = float(counters["lighting_computations"]), float(counters["exact_lighting_computations"])
+    truth = truly_reaching(lights)
+    assert exact <= truth if backface else exact == truth
+    assert exact <= lighting <= float(slow_counters["lighting_computations"])
+    assert 0.0 <= float(counters["false_positive_rate"]) < 1.0
+    assert int(counters["lights"]) == lights.count
+
+
+@pytest.mark.parametrize("name", sorted(LIGHTS))
+def test_clustered_equals_brute_force(name):
+    fast, slow, counters, slow_counters = shade_both(LIGHTS[name])
+    assert_same(fast, slow)
+    assert_consistent(counters, slow_counters, LIGHTS[name], backface=False)
+    assert int(counters["clusters"]) > (RES[0] // TILE) * (RES[1] // TILE), "the box covers every tile, in depth too"
+
+
+@pytest.mark.parametrize("variant", ["explicit_sample_cones", "normal_bins_key_cones"])
+def test_bounds_and_normal_cones_equal_brute_force_and_cull_more(variant):
+    lights = LIGHTS["hundred"]
+    fast, slow, counters, slow_counters = shade_both(lights, **VARIANTS[variant])
+    assert_same(fast, slow)
+    assert_consistent(counters, slow_counters, lights, backface=True)
+    _, _, plain, _ = shade_both(lights)
+    assert int(counters["lights_backface_culled"]) > 0
+    assert float(counters["lighting_computations"]) < float(plain["lighting_computations"])
+
+
+TEN_THOUSAND = dict(tile=8, bounds="explicit", tree_branching=32, cluster_light_capacity=256, frontier_capacity=8192)
+
+
+def test_ten_thousand_lights_equal_brute_force_and_the_tree_finds_the_brute_force_lists():
+    lights = ten_thousand_lights()
+    fast, slow, counters, slow_counters = shade_both(lights, **TEN_THOUSAND)
+    assert_same(fast, slow)
+    assert_consistent(counters, slow_counters, lights, backface=False)
+    assert int(counters["cluster_light_tests"]) + int(counters["tree_nodes_tested"]) < 0.2 * int(counters["clusters"]) * lights.count
+    assert_tree_lists_are_brute_force_lists(lights, **TEN_THOUSAND)
+
+
+def assert_tree_lists_are_brute_force_lists(lights, **options):
+    *_, tree_lists, tree_counts, tree_stats = lists_of(lights, **options)
+    *_, brute_lists, brute_counts, brute_stats = lists_of(lights, **options, assignment="brute_force")
+    assert int(tree_stats["frontier_overflow"]) == 0 and int(tree_stats["tree_nodes_tested"]) > 0
+    np.testing.assert_array_equal(np.asarray(tree_lists), np.asarray(brute_lists))
+    np.testing.assert_array_equal(np.asarray(tree_counts), np.asarray(brute_counts))
+    assert int(tree_stats["lights_backface_culled"]) == int(brute_stats["lights_backface_culled"])
+    assert int(tree_stats["cluster_light_tests"]) < int(brute_stats["cluster_light_tests"])
+
+
+@pytest.mark.parametrize("variant", ["implicit", "normal_bins_key_cones"])  # explicit bounds: the 10,000 test
+def test_tree_assignment_gives_the_brute_force_lists(variant):
+    assert_tree_lists_are_brute_force_lists(LIGHTS["hundred"], **VARIANTS[variant])
+
+
+def test_depth_slices_follow_eq_2_with_a_floor_and_hold_their_samples():
+    keys, last = cluster_keys(VIEW_POSITION, VIEW_NORMAL, GBUFFER["coverage"], CAMERA, tile=TILE, normal_bins=0)
+    keys = np.asarray(keys)
+    tiles_y, tiles_x = -(-RES[0] // TILE), -(-RES[1] // TILE)
+    depth = -np.asarray(VIEW_POSITION, np.float64)[..., 2]
+    base = 1.0 + 2.0 * np.tan(0.5 * float(CAMERA.fov_y)) / tiles_y
+    expected = np.floor(np.log(depth / float(CAMERA.near)) / np.log(base))
+    k = keys // (tiles_x * tiles_y)
+    rows, cols = np.indices(RES)
+    assert (keys[~COVERED] == NO_KEY).all()
+    covered_k = k[COVERED]
+    assert np.mean(covered_k == expected[COVERED]) > 0.99 and np.abs(covered_k - expected[COVERED]).max() <= 1
+    assert ((keys % tiles_x)[COVERED] == (cols // TILE)[COVERED]).all()
+    assert (((keys // tiles_x) % tiles_y)[COVERED] == (rows // TILE)[COVERED]).all()
+    order = np.argsort(depth[COVERED])
+    assert (np.diff(covered_k[order]) >= 0).all(), "k is monotone in the view depth"
+    near, far = (np.asarray(x) for x in slice_depths(jnp.asarray(covered_k), CAMERA, tiles_y=tiles_y))
+    assert ((near <= depth[COVERED]) & (depth[COVERED] <= far)).all()
+    lower, upper = (np.asarray(x) for x in implicit_bounds(jnp.asarray(keys[COVERED]), CAMERA, shape=RES, tile=TILE,
+                                                            normal_bins=0, last=last))
+    samples = np.asarray(VIEW_POSITION)[COVERED]
+    assert ((lower <= samples) & (samples <= upper)).all(), "every sample lies in its implicit sub-frustum box"
+
+
+def test_unique_clusters_and_explicit_bounds_against_numpy():
+    keys, _ = cluster_keys(VIEW_POSITION, VIEW_NORMAL, GBUFFER["coverage"], CAMERA, tile=TILE, normal_bins=3)
+    flat = np.asarray(keys).reshape(-1)
+    unique, pixel_cluster, count = (np.asarray(x) for x in find_clusters(jnp.asarray(flat), capacity=512))
+    expected = np.unique(flat[flat != NO_KEY])
+    assert int(count) == len(expected)
+    np.testing.assert_array_equal(unique[: len(expected)], expected)
+    assert (unique[len(expected):] == NO_KEY).all()
+    assert (unique[pixel_cluster[COVERED.reshape(-1)]] == flat[COVERED.reshape(-1)]).all()
+    assert (pixel_cluster[~COVERED.reshape(-1)] == -1).all()
+    clusters, pixel_cluster, *_ = lists_of(no_lights(), bounds="explicit")
+    implicit, _, *_ = lists_of(no_lights())
+    samples = np.asarray(VIEW_POSITION).reshape(-1, 3)
+    pc = np.asarray(pixel_cluster)
+    lower, upper = np.asarray(clusters.lower), np.asarray(clusters.upper)
+    for c in range(int(clusters.count)):
+        members = samples[pc == c]
+        np.testing.assert_array_equal(lower[c], members.min(0))
+        np.testing.assert_array_equal(upper[c], members.max(0))
+        assert (np.asarray(implicit.lower)[c] <= lower[c]).all() and (upper[c] <= np.asarray(implicit.upper)[c]).all()
+
+
+def test_light_tree_nodes_hold_their_children_and_leaves_are_morton_sorted():
+    rng = np.random.default_rng(4)
+    centre = jnp.asarray(rng.uniform(-5, 5, (70, 3)), jnp.float32)
+    radius = jnp.asarray(rng.uniform(0.1, 1.0, (70, 1)), jnp.float32)
+    tree = build_light_tree(centre - radius, centre + radius, centre, branching=4)
+    order = np.asarray(tree.order)
+    assert len(tree.lower) == 5 and order.shape == (256,) and sorted(order[:70]) == list(range(70))
+    assert (order[70:] == -1).all()
+    codes = np.asarray(morton_codes(centre))[order[:70]]
+    assert (np.diff(codes) >= 0).all()
+    for level in range(1, len(tree.lower)):
+        children_lo = np.asarray(tree.lower[level - 1]).reshape(-1, 4, 3)
+        children_hi = np.asarray(tree.upper[level - 1]).reshape(-1, 4, 3)
+        np.testing.assert_array_equal(np.asarray(tree.lower[level]), children_lo.min(1))
+        np.testing.assert_array_equal(np.asarray(tree.upper[level]), children_hi.max(1))
+    np.testing.assert_array_equal(np.asarray(tree.lower[0])[:70], np.asarray(centre - radius)[order[:70]])
+
+
+@pytest.mark.parametrize("variant", ["explicit_sample_cones", "normal_bins_key_cones"])
+def test_backface_culled_lights_face_away_from_every_sample_of_their_cluster(variant):
+    lights = LIGHTS["hundred"]
+    clusters, pixel_cluster, culled_lists, *_ = lists_of(lights, **VARIANTS[variant])
+    without = dict(VARIANTS[variant], normal_cones="none")
+    _, _, full_lists, *_ = lists_of(lights, **without)
+    points = np.asarray(GBUFFER["position"]).reshape(-1, 3)
+    normals = np.asarray(GBUFFER["normal"]).reshape(-1, 3)
+    positions, directions, kinds = (np.asarray(x) for x in (lights.position, lights.direction, lights.kind))
+    pc, removed_pairs = np.asarray(pixel_cluster), 0
+    for c in range(int(clusters.count)):
+        removed = set(np.asarray(full_lists)[c]) - set(np.asarray(culled_lists)[c]) - {-1}
+        members = pc == c
+        for light in removed:
+            to_light = -directions[light][None] if kinds[light] == 2 else positions[light] - points[members]
+            assert (np.sum(normals[members] * to_light, axis=1) <= 1e-6).all()
+            removed_pairs += 1
+    assert removed_pairs > 0
