@@ -130,6 +130,8 @@ def crossover(args) -> None:
                 rows.append({"trees": trees, "lights": count, "technique": technique, "ms": row["run_ms_median"],
                              "lighting": row["counters"]["lighting_computations"],
                              "exact": row["counters"]["exact_lighting_computations"]})
+                print(f"trees={trees} lights={count} {technique}: {row['run_ms_median']:.2f} ms, "
+                      f"lighting {row['counters']['lighting_computations'] / 1e6:.1f} M", flush=True)
     device = device_info()["device_kind"]
     lines = [f"Atrium {args.resolution}, lights uniform in its box, range {args.range}, {device}. Lighting computations "
              "(millions) and shading-pass time (ms). Published (Paper II Figs. 10, 12): clustered ≤ tiled, the gap "

@@ -9,9 +9,14 @@
 - every capacity, forced small, reports its overflow, and the frame still equals the reference (the
   entry points grow lossy capacities and render again);
 - its reference page lists every option and parameter.
+
+The heavier of these (gradients, jit against eager, reference, capacities) are marked ``slow`` for the
+families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget; ``pytest -m slow
+tests/test_techniques.py`` runs them.
 """
 
 import dataclasses
+import functools
 import inspect
 
 import jax
@@ -45,11 +50,28 @@ def _scenes():
 
 SCENES = _scenes()
 
+SLOW_FAMILIES = {"media"}
+"""Families whose heavy generic cases run only with ``-m slow`` (ray marches compile slowly on the CPU)."""
+
+
+def _cases(cases):
+    """``cases`` (technique ids, or tuples starting with one) with the ``slow`` mark on those of
+    :data:`SLOW_FAMILIES`."""
+    first = lambda case: case[0] if isinstance(case, tuple) else case
+    return [pytest.param(*(case if isinstance(case, tuple) else (case,)), marks=pytest.mark.slow)
+            if TECHNIQUES[first(case)].family in SLOW_FAMILIES else case for case in cases]
+
 
 def _example(technique_id, outputs=None, **options):
-    """``technique_id`` with its example options, completed by the standard producers of its inputs."""
+    """``technique_id`` with its example options, completed by the standard producers of its inputs (one
+    pipeline per arguments, so that its compiled frames serve every test that asks for it)."""
     outputs = outputs or tuple(b.name for b in TECHNIQUES[technique_id].outputs)
-    return pipeline_for(technique_id, example=True, outputs=outputs, **options)
+    return _pipeline(technique_id, tuple(outputs), tuple(sorted(options.items())))
+
+
+@functools.lru_cache(maxsize=None)
+def _pipeline(technique_id, outputs, options):
+    return pipeline_for(technique_id, example=True, outputs=outputs, **dict(options))
 
 
 def _assert_same(actual: dict, expected: dict, names, rtol=1e-4):
@@ -126,7 +148,7 @@ def _agree(analytic, numeric, rtol=0.05):
     return abs(analytic - numeric) <= rtol * max(abs(analytic), abs(numeric), 1e-3)
 
 
-@pytest.mark.parametrize("technique_id", GRADIENT_CHECKED)
+@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED))
 def test_parameters_and_light_values_have_correct_gradients(technique_id):
     """One reverse-mode gradient per technique, against central differences: along a random direction
     in each declared continuous parameter (moved away from zero, where tone curves and clamps have
@@ -163,7 +185,7 @@ def test_parameters_and_light_values_have_correct_gradients(technique_id):
         assert _agree(analytic, _central_difference(loss, values, direction, lights, 1.0)), "light values"
 
 
-@pytest.mark.parametrize("technique_id", IDS)
+@pytest.mark.parametrize("technique_id", _cases(IDS))
 def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id):
     pipeline = _example(technique_id)
     params, scene = pipeline.init_params(), SCENES["sphere"]
@@ -182,7 +204,7 @@ def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id
 WITH_REFERENCE = [(t.id, scene) for t in TECHNIQUES.values() if t.reference for scene in SCENES]
 
 
-@pytest.mark.parametrize("technique_id, scene", WITH_REFERENCE, ids=[f"{t}-{s}" for t, s in WITH_REFERENCE])
+@pytest.mark.parametrize("technique_id, scene", _cases(WITH_REFERENCE), ids=[f"{t}-{s}" for t, s in WITH_REFERENCE])
 def test_technique_equals_its_reference(technique_id, scene):
     reference = TECHNIQUES[technique_id].reference
     shared = [b.name for b in TECHNIQUES[technique_id].outputs if b.name in {o.name for o in TECHNIQUES[reference].outputs}]
@@ -194,7 +216,7 @@ def test_technique_equals_its_reference(technique_id, scene):
 CAPACITIES = [(t.id, c) for t in TECHNIQUES.values() for c in t.capacities]
 
 
-@pytest.mark.parametrize("technique_id, capacity", CAPACITIES, ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
+@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]

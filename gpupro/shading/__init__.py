@@ -7,6 +7,7 @@ from gpupro.shading.brdfs import (
     beckmann_to_phong_power,
     blinn_phong,
     brdf,
+    brdf_towards,
     cook_torrance,
     d_beckmann,
     d_ggx,
@@ -17,6 +18,7 @@ from gpupro.shading.brdfs import (
     g_smith,
     lambert,
     phong_power_to_beckmann,
+    view_terms,
 )
 from gpupro.shading.light_falloff import (
     DISTANCE_EPSILON_SQ,
@@ -35,5 +37,7 @@ from gpupro.shading.light_loop import (
     light_radiance,
     light_reaches,
     shade_surfaces,
+    sum_over_lights,
+    surface_terms,
     view_directions,
 )

@@ -245,6 +245,18 @@ def _check_vectors(**vectors) -> None:
             raise ValueError(f"{name} must have shape [..., 3], got {jnp.shape(value)}")
 
 
+def _specular_lobe(n, v, l, n_dot_v, visibility_v, alpha, distribution):
+    """The light-dependent factors of Cook-Torrance: (n·l, lit, D(n·h) V1(n·l) V1(n·v)/4, v·h), given
+    n·v and ``visibility_v`` = V1(n·v)/4, which depend on the view only."""
+    n_dot_l = _dot(n, l)
+    lit = (n_dot_l > 0) & (n_dot_v > 0)
+    half = v + l
+    # v + l vanishes only for l = −v, which is never lit; the floor only protects masked lanes.
+    h = half * jnp.reciprocal(jnp.sqrt(jnp.maximum(_dot(half, half), 1e-12)))[..., None]
+    specular = _NDF[distribution](_dot(n, h), alpha) * _VISIBILITY1[distribution](n_dot_l, alpha) * visibility_v
+    return n_dot_l, lit, specular, _dot(v, h)
+
+
 def cook_torrance(n, v, l, *, alpha, f0, distribution="ggx"):
     """Cook-Torrance specular BRDF D(n·h) F(v·h) G(l, v) / (4 (n·l)(n·v)).
 
@@ -256,16 +268,40 @@ def cook_torrance(n, v, l, *, alpha, f0, distribution="ggx"):
     _check_distribution(distribution)
     _check_vectors(n=n, v=v, l=l)
     n, v, l = _f32(n), _f32(v), _f32(l)
-    n_dot_l, n_dot_v = _dot(n, l), _dot(n, v)
-    lit = (n_dot_l > 0) & (n_dot_v > 0)
-    half = v + l
-    # v + l vanishes only for l = −v, which is never lit; the floor only protects masked lanes.
-    h = half * jnp.reciprocal(jnp.sqrt(jnp.maximum(_dot(half, half), 1e-12)))[..., None]
-    visibility = 0.25 * _VISIBILITY1[distribution](n_dot_l, alpha) * _VISIBILITY1[distribution](n_dot_v, alpha)
-    specular = _NDF[distribution](_dot(n, h), alpha) * visibility
-    f0 = jnp.atleast_1d(_f32(f0))
-    fresnel = fresnel_schlick(_dot(v, h)[..., None], f0)
+    n_dot_v = _dot(n, v)
+    _, lit, specular, v_dot_h = _specular_lobe(n, v, l, n_dot_v, 0.25 * _VISIBILITY1[distribution](n_dot_v, alpha),
+                                               alpha, distribution)
+    fresnel = fresnel_schlick(v_dot_h[..., None], jnp.atleast_1d(_f32(f0)))
     return jnp.where(lit[..., None], specular[..., None] * fresnel, 0.0)
+
+
+def view_terms(n, v, *, base_color, roughness, metallic, distribution="ggx"):
+    """The factors of :func:`brdf` that do not depend on the light direction, computed once per point
+    for a loop over lights (:func:`brdf_towards`).
+
+    ``n``, ``v`` [..., 3] unit vectors (normal, to viewer); ``base_color`` [..., 3]; ``roughness``,
+    ``metallic`` [...]; ``distribution`` static. Returns a dict of ``n``, ``v`` [..., 3], ``n_dot_v``,
+    ``alpha`` (roughness², clamped), ``visibility_v`` (V1(n·v)/4) [...], ``f0`` and ``diffuse``
+    ((1 − metallic) base_color/π, 1/sr) [..., 3].
+    """
+    _check_distribution(distribution)
+    _check_vectors(n=n, v=v, base_color=base_color)
+    n, v, base_color = _f32(n), _f32(v), _f32(base_color)
+    metallic = _f32(metallic)[..., None]
+    alpha = _alpha(_f32(roughness) ** 2)
+    n_dot_v = _dot(n, v)
+    return dict(n=n, v=v, n_dot_v=n_dot_v, alpha=alpha, visibility_v=0.25 * _VISIBILITY1[distribution](n_dot_v, alpha),
+                f0=DIELECTRIC_F0 * (1.0 - metallic) + base_color * metallic, diffuse=lambert((1.0 - metallic) * base_color))
+
+
+def brdf_towards(terms: dict, l, *, distribution="ggx"):
+    """:func:`brdf` for light directions ``l`` [..., 3] (unit) from the :func:`view_terms` of the points
+    (broadcast against ``l``). Returns ``(f, n_dot_l)``: f [..., 3] in 1/sr (0 where n·l ≤ 0 or
+    n·v ≤ 0) and the cosine n·l [...]."""
+    n_dot_l, lit, specular, v_dot_h = _specular_lobe(terms["n"], terms["v"], _f32(l), terms["n_dot_v"],
+                                                     terms["visibility_v"], terms["alpha"], distribution)
+    f = terms["diffuse"] + specular[..., None] * fresnel_schlick(v_dot_h[..., None], terms["f0"])
+    return jnp.where(lit[..., None], f, 0.0), n_dot_l
 
 
 def brdf(n, v, l, *, base_color, roughness, metallic, distribution="ggx"):
@@ -277,11 +313,6 @@ def brdf(n, v, l, *, base_color, roughness, metallic, distribution="ggx"):
     Returns [..., 3] in 1/sr; 0 where n·l ≤ 0 or n·v ≤ 0. Differentiable in base_color, roughness
     (above sqrt(ALPHA_MIN)) and metallic.
     """
-    _check_vectors(n=n, v=v, l=l, base_color=base_color)
-    base_color = _f32(base_color)
-    metallic = _f32(metallic)[..., None]
-    f0 = DIELECTRIC_F0 * (1.0 - metallic) + base_color * metallic
-    specular = cook_torrance(n, v, l, alpha=_f32(roughness) ** 2, f0=f0, distribution=distribution)
-    lit = (_dot(_f32(n), _f32(l)) > 0) & (_dot(_f32(n), _f32(v)) > 0)
-    diffuse = jnp.where(lit[..., None], lambert((1.0 - metallic) * base_color), 0.0)
-    return diffuse + specular
+    _check_vectors(l=l)
+    terms = view_terms(n, v, base_color=base_color, roughness=roughness, metallic=metallic, distribution=distribution)
+    return brdf_towards(terms, l, distribution=distribution)[0]

@@ -36,14 +36,15 @@ import numpy as np
 
 from gpupro.numerics import dot3
 from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights
-from gpupro.shading.brdfs import DISTRIBUTIONS, brdf
+from gpupro.shading.brdfs import DISTRIBUTIONS, brdf_towards, view_terms
 from gpupro.shading.light_falloff import incident_light
 
 _VIEW_LENGTH_MIN = 1e-12  # floor under |e − x| so v is finite when a point sits at the eye
 
 
-def _pad_lights(lights: Lights, count: int) -> Lights:
-    """Appends ``count`` point lights of zero colour (range 1, so d/r stays finite); they add exactly 0."""
+def pad_lights(lights: Lights, *, count: int) -> Lights:
+    """``lights`` (N) followed by ``count`` point lights of zero colour (range 1, so d/r stays finite),
+    which add exactly 0 to any sum over lights: N + count lights, e.g. to fill whole chunks."""
     pad = lambda x, value: jnp.pad(x, [(0, count)] + [(0, 0)] * (x.ndim - 1), constant_values=value)
     return Lights(
         kind=pad(lights.kind, POINT),
@@ -67,23 +68,29 @@ def default_light_chunk() -> int:
     return 32 if jax.default_backend() == "gpu" else 64
 
 
-def light_radiance(points, normals, views, material: dict, lights: Lights, visibility=None, *,
-                   distribution: str):
+def light_radiance(points, terms: dict, lights: Lights, visibility=None, *, distribution: str):
     """brdf(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i of each of M lights at each of P points: the per-light
     arithmetic that every light loop (all lights, or culled per-tile lists) shares.
 
-    ``points`` [P, 3] world positions; ``normals``, ``views`` [P, 1, 3] unit vectors (normal, towards
-    the eye); ``material``: ``base_color`` [P, 1, 3], ``roughness``, ``metallic`` [P, 1]; ``lights``: M
-    lights; ``visibility``: None or [P, M] shadow factors s_i in [0, 1]; ``distribution`` (static).
-    Returns radiance [P, M, 3] (W/(m² sr)).
+    ``points`` [P, 3] world positions; ``terms``: the points' :func:`gpupro.shading.brdfs.view_terms`
+    with a light axis of size 1 (:func:`surface_terms`), computed once outside the loop over lights;
+    ``lights``: M lights; ``visibility``: None or [P, M] shadow factors s_i in [0, 1];
+    ``distribution`` (static). Returns radiance [P, M, 3] (W/(m² sr)).
     """
     to_light, irradiance = incident_light(lights, points)  # [P, M, 3] each
-    f = brdf(normals, views, to_light, **material, distribution=distribution)
-    cosine = jnp.maximum(dot3(normals, to_light, keepdims=True), 0.0)
-    radiance = f * irradiance * cosine
+    f, n_dot_l = brdf_towards(terms, to_light, distribution=distribution)
+    radiance = f * irradiance * jnp.maximum(n_dot_l, 0.0)[..., None]
     if visibility is not None:
         radiance = radiance * visibility[..., None]
     return radiance
+
+
+def surface_terms(normals, views, base_color, roughness, metallic, *, distribution: str) -> dict:
+    """The light-independent BRDF factors (:func:`gpupro.shading.brdfs.view_terms`) of P points with a
+    light axis of size 1, as :func:`light_radiance` takes them: ``normals``, ``views``, ``base_color``
+    [P, 3]; ``roughness``, ``metallic`` [P]."""
+    return view_terms(normals[:, None, :], views[:, None, :], base_color=base_color[:, None, :],
+                      roughness=roughness[:, None], metallic=metallic[:, None], distribution=distribution)
 
 
 def _with_unshadowed_column(shadow, n_points: int):
@@ -92,10 +99,39 @@ def _with_unshadowed_column(shadow, n_points: int):
     return jnp.concatenate([jnp.asarray(shadow, jnp.float32), jnp.ones((n_points, 1), jnp.float32)], axis=1)
 
 
-def _broadcast_surface(normals, views, base_color, roughness, metallic):
-    """Per-point surface values with a light axis of size 1, as :func:`light_radiance` takes them."""
-    material = dict(base_color=base_color[:, None, :], roughness=roughness[:, None], metallic=metallic[:, None])
-    return normals[:, None, :], views[:, None, :], material
+def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_chunk: int | None = None):
+    """Σ_i term(lights)[:, i] · s_i over N lights, as a scan over chunks of ``light_chunk`` lights: the
+    loop of every all-lights sum (surface shading, in-scattering in media).
+
+    ``term``: a function of M lights → [P, M, 3] (called on chunks of them, padded with zero-colour
+    lights whose term must be 0: :func:`pad_lights`); ``lights``: N lights; ``n_points`` P;
+    ``shadow``: None, or [P, K] visibility s_i in [0, 1] of the first K ≤ N lights (the others 1);
+    ``light_chunk`` (static) lights per scan step (capped at N; None: :func:`default_light_chunk`),
+    the peak intermediate being [P, light_chunk, 3]. The chunk body is rematerialised under reverse
+    mode (``jax.checkpoint``). Returns [P, 3].
+    """
+    n_lights = lights.count
+    if n_lights == 0:
+        return jnp.zeros((n_points, 3), jnp.float32)
+    chunk = min(light_chunk or default_light_chunk(), n_lights)
+    n_chunks = -(-n_lights // chunk)
+    padded = pad_lights(lights, count=n_chunks * chunk - n_lights)
+    chunked = jax.tree_util.tree_map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), padded)
+    if shadow is not None:
+        shadow = _with_unshadowed_column(shadow, n_points)
+        n_shadowed = shadow.shape[1] - 1
+
+    @jax.checkpoint
+    def step(total, xs):
+        chunk_lights, first = xs
+        values = term(chunk_lights)
+        if shadow is not None:
+            values = values * jnp.take(shadow, jnp.minimum(first + jnp.arange(chunk), n_shadowed), axis=1)[..., None]
+        return total + jnp.sum(values, axis=1), None
+
+    starts = jnp.arange(n_chunks, dtype=jnp.int32) * chunk
+    total, _ = jax.lax.scan(step, jnp.zeros((n_points, 3), jnp.float32), (chunked, starts))
+    return total
 
 
 def accumulate_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, *, shadow=None,
@@ -111,30 +147,9 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     :mod:`gpupro.shading.light_falloff`). The loop shared by deferred and forward shading.
     """
     points = jnp.asarray(points, jnp.float32)
-    n_points, n_lights = points.shape[0], lights.count
-    if n_lights == 0:
-        return jnp.zeros((n_points, 3), jnp.float32)
-    chunk = min(light_chunk or default_light_chunk(), n_lights)
-    n_chunks = -(-n_lights // chunk)
-    padded = _pad_lights(lights, n_chunks * chunk - n_lights)
-    chunked = jax.tree_util.tree_map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), padded)
-    if shadow is not None:
-        shadow = _with_unshadowed_column(shadow, n_points)
-        n_shadowed = shadow.shape[1] - 1
-    n, v, material = _broadcast_surface(normals, views, base_color, roughness, metallic)
-
-    @jax.checkpoint
-    def step(total, xs):
-        chunk_lights, first = xs
-        visibility = None
-        if shadow is not None:
-            visibility = jnp.take(shadow, jnp.minimum(first + jnp.arange(chunk), n_shadowed), axis=1)
-        radiance = light_radiance(points, n, v, material, chunk_lights, visibility, distribution=distribution)
-        return total + jnp.sum(radiance, axis=1), None
-
-    starts = jnp.arange(n_chunks, dtype=jnp.int32) * chunk
-    total, _ = jax.lax.scan(step, jnp.zeros((n_points, 3), jnp.float32), (chunked, starts))
-    return total
+    terms = surface_terms(normals, views, base_color, roughness, metallic, distribution=distribution)
+    radiance = lambda chunk_lights: light_radiance(points, terms, chunk_lights, distribution=distribution)
+    return sum_over_lights(radiance, lights, points.shape[0], shadow=shadow, light_chunk=light_chunk)
 
 
 def light_reaches(lights: Lights, points):
@@ -199,7 +214,7 @@ intermediate about WORK_PER_STEP × 3 floats)."""
 
 def _slots(lists, lights: Lights, chunk: int):
     """``lists`` [G, C] → [G, n_chunks, chunk] light indices, −1 (and the padding to whole chunks)
-    turned into index N, the appended zero-colour light of ``_pad_lights(lights, 1)``."""
+    turned into index N, the appended zero-colour light of ``pad_lights(lights, count=1)``."""
     n_groups, capacity = lists.shape
     n_chunks = -(-capacity // chunk)
     lists = jnp.where(lists < 0, lights.count, lists)
@@ -216,14 +231,20 @@ def _with_unshadowed(shadow, n_groups: int, n_per_group: int):
     return flat.reshape(n_groups, n_per_group, n_shadowed + 1), n_shadowed
 
 
-def _group_sums(surface, group_shadow, indices, padded: Lights, n_lights: int, n_shadowed: int, distribution: str):
-    """One group's Q points (``surface``: points [Q, 3], normals, views, base colour [Q, 3], roughness,
-    metallic [Q]) and ``chunk`` light ``indices`` → radiance [Q, 3], reached [Q]."""
-    group_points, n, v, base, rough, metal = surface
+def _group_terms(surface, distribution: str):
+    """``surface`` (points [G, Q, 3], normals, views, base colour [G, Q, 3], roughness, metallic [G, Q])
+    → (points, the :func:`surface_terms` of each group)."""
+    points, *rest = surface
+    return points, jax.vmap(lambda *group: surface_terms(*group, distribution=distribution))(*rest)
+
+
+def _group_sums(group_points, terms, group_shadow, indices, padded: Lights, n_lights: int, n_shadowed: int,
+                distribution: str):
+    """One group's Q points ([Q, 3] and their :func:`surface_terms`) and ``chunk`` light ``indices`` →
+    radiance [Q, 3], reached [Q]."""
     chunk_lights = jax.tree_util.tree_map(lambda x: x[indices], padded)
-    n, v, material = _broadcast_surface(n, v, base, rough, metal)
     visibility = None if group_shadow is None else jnp.take(group_shadow, jnp.minimum(indices, n_shadowed), axis=1)
-    radiance = light_radiance(group_points, n, v, material, chunk_lights, visibility, distribution=distribution)
+    radiance = light_radiance(group_points, terms, chunk_lights, visibility, distribution=distribution)
     reached = light_reaches(chunk_lights, group_points) & (indices < n_lights)[None]
     return jnp.sum(radiance, axis=1), jnp.sum(reached, axis=1, dtype=jnp.float32)
 
@@ -233,14 +254,15 @@ def _padded_light_lists(surface, lights: Lights, lists, rows, shadow, distributi
     chunks): the differentiable form, whose cost is G · Q · C evaluations."""
     n_groups, n_per_group = surface[0].shape[:2]
     slots = _slots(lists, lights, chunk)[rows].transpose(1, 0, 2)  # [n_chunks, G, chunk]
-    padded = _pad_lights(lights, 1)
+    padded = pad_lights(lights, count=1)
     shadow, n_shadowed = _with_unshadowed(shadow, n_groups, n_per_group)
+    points, terms = _group_terms(surface, distribution)
 
     @jax.checkpoint
     def step(carry, indices):
         total, count = carry
-        group = lambda s, sh, i: _group_sums(s, sh, i, padded, lights.count, n_shadowed, distribution)
-        radiance, reached = jax.vmap(group)(surface, shadow, indices)
+        group = lambda p, t, sh, i: _group_sums(p, t, sh, i, padded, lights.count, n_shadowed, distribution)
+        radiance, reached = jax.vmap(group)(points, terms, shadow, indices)
         return (total + radiance, count + reached), None
 
     zeros = (jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32))
@@ -248,7 +270,7 @@ def _padded_light_lists(surface, lights: Lights, lists, rows, shadow, distributi
     return total, reached
 
 
-def _work_list_light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
+def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
     """:func:`accumulate_light_lists` over the chunks that hold a light (its docstring): groups sorted by
     list length, in blocks of ``items`` groups, each block looping over its longest list's chunks."""
     n_groups, n_per_group = surface[0].shape[:2]
@@ -263,16 +285,17 @@ def _work_list_light_lists(surface, lights: Lights, lists, rows, shadow, distrib
     source = jnp.minimum(order, n_groups - 1)
     block_used = jnp.pad(used, (0, n_blocks * items - n_groups))[order].reshape(n_blocks, items)[:, 0]
     blocked = lambda x: x[source].reshape((n_blocks, items) + x.shape[1:])
-    padded = _pad_lights(lights, 1)
+    padded = pad_lights(lights, count=1)
     shadow, n_shadowed = _with_unshadowed(shadow, n_groups, n_per_group)
-    sums = jax.vmap(lambda s, sh, i: _group_sums(s, sh, i, padded, lights.count, n_shadowed, distribution))
+    sums = jax.vmap(lambda p, t, sh, i: _group_sums(p, t, sh, i, padded, lights.count, n_shadowed, distribution))
 
     def block(_, xs):
         block_surface, block_shadow, block_slots, chunks = xs
+        block_points, block_terms = _group_terms(block_surface, distribution)
 
         def step(carry):
             j, total, count = carry
-            radiance, reached = sums(block_surface, block_shadow, block_slots[:, j])
+            radiance, reached = sums(block_points, block_terms, block_shadow, block_slots[:, j])
             return j + 1, total + radiance, count + reached
 
         zeros = (jnp.int32(0), jnp.zeros((items, n_per_group, 3), jnp.float32),
@@ -290,11 +313,11 @@ def _work_list_light_lists(surface, lights: Lights, lists, rows, shadow, distrib
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6))
 def _light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
-    return _work_list_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+    return _bucketed_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
 
 
 def _light_lists_forward(surface, lights, lists, rows, shadow, distribution, chunk):
-    result = _work_list_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+    result = _bucketed_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
     return result, (surface, lights, lists, rows, shadow)
 
 

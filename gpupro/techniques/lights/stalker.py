@@ -93,7 +93,8 @@ from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_p
 from gpupro.shading.light_bounds import SLACK, light_spheres, transform_lights
 from gpupro.shading.light_falloff import incident_light
 from gpupro.shading.light_loop import (
-    check_shading_inputs, compose_radiance, default_light_chunk, light_radiance, light_reaches, view_directions,
+    check_shading_inputs, compose_radiance, default_light_chunk, light_radiance, light_reaches, surface_terms,
+    view_directions,
 )
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, number, one_of, register
 from gpupro.techniques.lights.deferred import (
@@ -278,7 +279,8 @@ def lookup_material(lut, n_dot_l, n_dot_h, roughness, *, min_roughness: float):
 
 
 def lut_radiance(points, normals, views, material: dict, lights: Lights, visibility=None, *, lut, min_roughness: float):
-    """The LUT counterpart of :func:`light_radiance` (same arguments and result [P, M, 3]):
+    """The LUT counterpart of :func:`light_radiance` (its arguments, with the points' ``normals`` and ``views``
+    [P, 1, 3] and ``material`` (base_color [P, 1, 3], roughness, metallic [P, 1]) for its terms; result [P, M, 3]):
     E⊥_i · s_i · [(1 − m) c · T_d + f0 · T_s] with T_d, T_s looked up in ``lut`` (module docstring)."""
     to_light, irradiance = incident_light(lights, points)
     half = views + to_light
@@ -328,9 +330,13 @@ def shade_masked(surface: dict, light_list, lights: Lights, camera: Camera, *, s
     slots = jnp.pad(light_list, (0, n_chunks * chunk - light_list.shape[0]), constant_values=-1)
     slots = slots.reshape(n_chunks, chunk)
     views = view_directions(points, camera.eye)
-    n, v = normals[:, None, :], views[:, None, :]
-    material = dict(base_color=flat["base_color"][:, None, :], roughness=flat["roughness"][:, None],
-                    metallic=flat["metallic"][:, None])
+    if lut is None:
+        terms = surface_terms(normals, views, flat["base_color"], flat["roughness"], flat["metallic"],
+                              distribution=distribution)
+    else:
+        n, v = normals[:, None, :], views[:, None, :]
+        material = dict(base_color=flat["base_color"][:, None, :], roughness=flat["roughness"][:, None],
+                        metallic=flat["metallic"][:, None])
     if shadow is not None:  # one column of ones stands for every unshadowed light
         n_shadowed = jnp.shape(shadow)[-1]
         shadow = jnp.concatenate([jnp.asarray(shadow, jnp.float32).reshape(height * width, n_shadowed),
@@ -347,7 +353,7 @@ def shade_masked(surface: dict, light_list, lights: Lights, camera: Camera, *, s
         reaches = light_reaches(chunk_lights, points) & covered[:, None] & listed[None]
         mask = reaches & faces_light(chunk_lights, points, normals)
         if lut is None:
-            radiance = light_radiance(points, n, v, material, chunk_lights, visibility, distribution=distribution)
+            radiance = light_radiance(points, terms, chunk_lights, visibility, distribution=distribution)
         else:
             radiance = lut_radiance(points, n, v, material, chunk_lights, visibility, lut=lut,
                                     min_roughness=min_roughness)

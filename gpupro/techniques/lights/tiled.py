@@ -159,14 +159,15 @@ def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, tile: i
 
 
 def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
-                      distribution: str, light_chunk: int | None, tile: int):
+                      distribution: str, light_chunk: int | None, tile: int, list_of_group=None):
     """Shades every pixel with the lights of its tile's list: the light loop of tiled shading.
 
     ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
     ([H, W] or [H, W, 3]); ``lists`` int32 [T, C] light indices per tile (−1 in empty slots); ``lights``
     N lights; ``camera`` the scene camera (its eye shades); ``ambient``, ``background`` [3]; ``shadow``
-    None or [H, W, K]; static: ``distribution``, ``light_chunk`` (list slots per scan step), ``tile``.
-    Returns ``(hdr float32 [H, W, 3], reached float32 [T, t²])``: ``reached`` counts the listed lights
+    None or [H, W, K]; static: ``distribution``, ``light_chunk`` (list slots per scan step), ``tile``;
+    ``list_of_group``: None (tile t reads row t), or int32 [T]: the row of ``lists`` [R, C] each tile
+    reads (see :func:`gpupro.shading.light_loop.accumulate_light_lists`). Returns ``(hdr float32 [H, W, 3], reached float32 [T, t²])``: ``reached`` counts the listed lights
     whose influence truly reaches each pixel.
     """
     shape = jnp.shape(surface["coverage"])
@@ -176,7 +177,7 @@ def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, a
     views = view_directions(points.reshape(-1, 3), camera.eye).reshape(points.shape)
     direct, reached = accumulate_light_lists(
         points, tiled["normal"], views, tiled["base_color"], tiled["roughness"], tiled["metallic"], lights, lists,
-        shadow=None if shadow is None else to_tiles(jnp.asarray(shadow, jnp.float32), tile=tile),
+        list_of_group=list_of_group, shadow=None if shadow is None else to_tiles(jnp.asarray(shadow, jnp.float32), tile=tile),
         distribution=distribution, light_chunk=light_chunk)
     hdr = compose_radiance(surface["coverage"], from_tiles(direct, shape, tile=tile), surface["emission"],
                            surface["base_color"], surface["metallic"], ambient=ambient, background=background)

@@ -337,8 +337,11 @@ def shade_culled(surface: dict, view_depth, culled: CulledTiles, lights: Lights,
     if culled.lists.shape[1] == 1:  # one list per tile: shade tile by tile
         hdr, reached = shade_light_lists(surface, culled.lists[:, 0], lights, camera, **options, tile=tile)
         return hdr, from_tiles(reached, shape, tile=tile), evaluated
-    lists = per_pixel(culled.lists, partitions, shape, tile=tile).reshape(shape[0] * shape[1], culled.lists.shape[2])
-    hdr, reached = shade_light_lists(surface, lists, lights, camera, **options, tile=1)  # a group per pixel
+    # A group per pixel, each reading its partition's row of the [T · P, C] lists.
+    n_tiles, n_partitions, capacity = culled.lists.shape
+    rows = jnp.arange(n_tiles, dtype=jnp.int32)[:, None] * n_partitions + partitions
+    hdr, reached = shade_light_lists(surface, culled.lists.reshape(n_tiles * n_partitions, capacity), lights, camera,
+                                     **options, tile=1, list_of_group=from_tiles(rows, shape, tile=tile).reshape(-1))
     return hdr, reached.reshape(shape), evaluated
 
 

@@ -1,0 +1,1 @@
+"""Participating media: atmosphere, fog, clouds, sparse volumes, explosions, volume AO."""

@@ -1,0 +1,162 @@
+"""Volumetric fog (GPU Pro 6 III.3): the froxel volume against the closed forms of a homogeneous medium
+(Beer–Lambert; single scattering of a directional light), its convergence to the per-pixel ray march as
+the grid grows, and the temporal blend. The pass runs on synthetic inputs (hdr, depths chosen at slice
+boundaries or at random) over the Cornell box's camera, so no rasterizer is compiled."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import gpupro as gp
+from gpupro.media import henyey_greenstein, pixel_rays
+from gpupro.techniques.media import volumetric_fog as vf
+from gpupro.technique import default_params, get, validate_options
+
+RES = (16, 16)
+GRID = {"froxels_x": 16, "froxels_y": 16, "slices": 16}  # columns through the pixel centres
+RANGE = 15.0
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return gp.scenes.cornell_box(resolution=RES)
+
+
+def _params(**values):
+    return default_params(get("volumetric_fog"), values)  # the reference shares these params
+
+
+def _froxels(**options):
+    """The jitted froxel pass ``(params, inputs, scene, state) → (outputs, counters, state)``."""
+    values = validate_options(get("volumetric_fog"), {"fog_range": RANGE, **options})
+    return jax.jit(lambda p, i, s, state: vf.apply(p, i, s, state, **values))
+
+
+def _reference(**options):
+    values = validate_options(get("volumetric_fog_reference"), {"fog_range": RANGE, **options})
+    return jax.jit(lambda p, i, s: vf.apply_reference(p, i, s, **values)[0]["hdr_fog_volume"])
+
+
+def _inputs(depth):
+    hdr = np.random.default_rng(1).uniform(0.0, 1.0, RES + (3,))
+    return {"hdr": jnp.asarray(hdr, jnp.float32), "view_depth": jnp.asarray(depth, jnp.float32),
+            "coverage": jnp.ones(RES, jnp.float32)}
+
+
+def _boundary_depths(slices):
+    """The slice boundaries' view depths, and pixel (i, j) at boundary (i + j) mod (slices + 1)."""
+    boundaries = np.asarray(vf.slice_depth(np.arange(slices + 1) / slices, RANGE, depth_exponent=3.0))
+    index = np.add.outer(np.arange(RES[0]), np.arange(RES[1])) % (slices + 1)
+    return boundaries, boundaries[index]
+
+
+def _rays(camera):
+    _, directions, depth_to_t = pixel_rays(camera)
+    return np.asarray(directions), np.asarray(depth_to_t)
+
+
+def test_homogeneous_medium_without_light_is_beer_lambert_at_the_slice_boundaries(scene):
+    """No lights, no ambient: S = 0 and T = exp(−σ t) at every boundary, in the volume and the image."""
+    sigma = 0.2
+    dark = scene.replace(lights=gp.scene.no_lights())
+    boundaries, depth = _boundary_depths(16)
+    inputs = _inputs(depth)
+    outputs, counters, _ = _froxels(**GRID)(_params(density=sigma), inputs, dark, None)
+    _, depth_to_t = _rays(scene.camera)
+    # T(0 → z) = exp(−∫ σ dt): the book prints the exponent without its minus sign.
+    expected = np.exp(-sigma * boundaries[None, None, :] * depth_to_t[..., None])
+    volume = np.asarray(outputs["froxel_volume"])
+    np.testing.assert_allclose(volume[..., 3], expected, rtol=2e-5, atol=1e-7)
+    assert np.all(volume[..., :3] == 0.0)
+    transmittance = np.exp(-sigma * depth * depth_to_t)[..., None]
+    np.testing.assert_allclose(outputs["hdr_fog_volume"], inputs["hdr"] * transmittance, rtol=2e-5, atol=1e-7)
+    assert float(counters["froxels"]) == 16 ** 3 and float(counters["light_evaluations"]) == 0.0
+
+
+def test_homogeneous_medium_lit_by_a_directional_light_matches_single_scattering(scene):
+    """S(t) = σ_s p(θ) E (1 − e^{−σ_t t}) / σ_t along a ray of length t: the exact slice integral and the
+    reference march match it; the chapter's sum (Listing 3.2, in-scattering × slice length) is
+    Σ_{j<k} T(t_j) σ_s p E Δt_j, which overestimates it by at most x/(1 − e^{−x}) − 1 < x/2 + x²/12 for
+    slices of optical depth up to x (measured: 12.2% at the far boundary, x = 0.90, 16 slices)."""
+    sigma, albedo, g = 0.3, np.array([0.9, 0.6, 0.3]), 0.5
+    sun = gp.scene.make_lights([gp.scene.DIRECTIONAL], direction=[[0.4, -1.0, 0.6]], color=[[2.0, 1.5, 1.0]])
+    lit = scene.replace(lights=sun)
+    params = _params(density=sigma, albedo=albedo, g=g)
+    boundaries, depth = _boundary_depths(16)
+    inputs = _inputs(depth)
+    directions, depth_to_t = _rays(scene.camera)
+    phase = np.asarray(henyey_greenstein(directions @ -np.asarray(sun.direction[0]), g))  # cos θ = l · ω
+    amplitude = albedo * np.asarray(sun.color[0])
+    t = boundaries * depth_to_t[..., None]  # [H, W, N + 1] ray length to each slice boundary
+    expected = amplitude * (phase[..., None] * -np.expm1(-sigma * t))[..., None]
+    t_pixel = depth * depth_to_t
+    seen = np.asarray(inputs["hdr"]) * np.exp(-sigma * t_pixel)[..., None] \
+        + amplitude * (phase * -np.expm1(-sigma * t_pixel))[..., None]
+
+    exact, _, _ = _froxels(**GRID, slice_integral="exact")(params, inputs, lit, None)
+    np.testing.assert_allclose(exact["froxel_volume"][..., :3], expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(exact["hdr_fog_volume"], seen, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(_reference(steps=16)(params, inputs, lit), seen, rtol=1e-5, atol=1e-6)
+
+    chapter, _, _ = _froxels(**GRID, slice_integral="chapter")(params, inputs, lit, None)
+    listing = np.cumsum(np.exp(-sigma * t[..., :-1]) * sigma * np.diff(t), axis=-1)
+    listing = amplitude * (phase[..., None] * np.concatenate([np.zeros(RES + (1,)), listing], axis=-1))[..., None]
+    volume = np.asarray(chapter["froxel_volume"])[..., :3]
+    np.testing.assert_allclose(volume, listing, rtol=1e-5, atol=1e-6)
+    x = sigma * np.diff(t).max()
+    relative = volume[..., 1:, :] / expected[..., 1:, :] - 1.0
+    assert np.all(relative > 0) and np.all(relative <= x / 2 + x * x / 12), (relative.max(), x)
+
+
+def test_froxels_converge_to_the_per_pixel_march_as_the_grid_grows(scene):
+    """Height fog with noise, the Cornell box's two point lights and ambient, at random depths: the mean
+    error of the froxel image against a 1024-step march falls with every doubling of the grid.
+    Measured (mean |error| over a mean fog contribution of 0.22): 5.2e-3, 2.3e-3, 7.3e-4."""
+    params = _params(density=0.05, height_density=0.1, height_falloff=0.4, noise_amplitude=0.5, noise_frequency=0.8,
+                     g=0.3, ambient=[0.05, 0.05, 0.05])
+    inputs = _inputs(np.random.default_rng(0).uniform(2.0, 14.0, RES))
+    truth = np.asarray(_reference(steps=1024)(params, inputs, scene))
+    errors = []
+    for n in (6, 12, 24):
+        outputs, _, _ = _froxels(froxels_x=n, froxels_y=n, slices=2 * n)(params, inputs, scene, None)
+        errors.append(np.mean(np.abs(np.asarray(outputs["hdr_fog_volume"]) - truth)))
+    fog = np.mean(np.abs(truth - np.asarray(inputs["hdr"])))
+    assert errors[1] < 0.6 * errors[0] and errors[2] < 0.6 * errors[1], errors
+    assert errors[2] < 5e-3 * fog, (errors, fog)
+
+
+def test_temporal_frames_blend_the_jittered_volume_with_the_reprojected_history(scene):
+    """Frame 0 samples the slice centres (ξ = ½) and equals a non-temporal frame; frame 1 samples ξ = ¼
+    and, with a still camera, is β · F(¼) + (1 − β) · F(½) in every froxel; a moved camera keeps the
+    history only where last frame's volume covers the froxels."""
+    params = _params(density=0.1, height_density=0.1)
+    inputs = _inputs(np.random.default_rng(0).uniform(2.0, 14.0, RES))
+    options = dict(GRID, temporal_blend=0.25)
+    run = _froxels(**options)
+    state = vf.init_state(scene, **validate_options(get("volumetric_fog"), {"fog_range": RANGE, **options}))
+    plain, _, plain_state = _froxels(**GRID, temporal=False)(params, inputs, scene, None)
+    first, _, after_first = run(params, inputs, scene, state)
+    np.testing.assert_allclose(first["hdr_fog_volume"], plain["hdr_fog_volume"], rtol=1e-6, atol=1e-7)
+    second, counters, after_second = run(params, inputs, scene, after_first)
+    quarter, _, quarter_state = run(params, inputs, scene, {**state, "frame": jnp.int32(1)})  # ξ = ¼, no history
+    assert int(after_second["frame"]) == 2 and float(counters["reprojected_froxels"]) == 16 ** 3
+    for key in ("in_scattering", "extinction"):
+        blend = 0.25 * np.asarray(quarter_state[key]) + 0.75 * np.asarray(plain_state[key])
+        peak = np.abs(blend).max()
+        np.testing.assert_allclose(after_second[key], blend, rtol=0, atol=1e-5 * peak)
+        assert np.abs(np.asarray(quarter_state[key]) - np.asarray(plain_state[key])).max() > 1e-3 * peak
+    assert not np.allclose(second["hdr_fog_volume"], plain["hdr_fog_volume"])
+
+    moved = scene.replace(camera=gp.scene.make_camera((3.5, 2.73, -8.0), (3.5, 2.73, 0.0), fov_y_degrees=39.3,
+                                                            near=0.1, far=20.0, resolution=RES))
+    _, counters, _ = run(params, inputs, moved, after_first)
+    assert 0.5 * 16 ** 3 < float(counters["reprojected_froxels"]) < 16 ** 3
+
+
+def test_bad_options_are_refused_naming_them(scene):
+    with pytest.raises(ValueError, match=r"slice_integral: expected one of \['chapter', 'exact'\]"):
+        gp.make_pass("volumetric_fog", slice_integral="midpoint")
+    with pytest.raises(ValueError, match=r"shadowed_lights: 3 shadowed lights but the scene has 2"):
+        vf.apply(_params(), _inputs(np.ones(RES)), scene, None,
+                 **validate_options(get("volumetric_fog"), {**GRID, "shadowed_lights": 3}))
