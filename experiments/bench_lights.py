@@ -26,9 +26,8 @@ import tomllib
 import jax
 
 import gpupro as gp
-from gpupro.bench import device_info, peak_memory_bytes, time_function
+from gpupro.bench import device_info, peak_memory_bytes, time_function, time_pass
 from gpupro.pipeline import pipeline_for
-from gpupro.pipeline.capacity import capacities, render_without_overflow
 from gpupro.scene.light_generators import uniform_in_box
 from gpupro.technique import registered
 
@@ -93,29 +92,18 @@ STAGES = {"clustered_deferred": _clustered_stages, "tiled_deferred": _tiled_stag
 """Techniques whose stages are timed apart: id → f(pass inputs, scene, options) → {stage: (jitted fn, args)}."""
 
 
-def time_pass(technique_id: str, scene, options: dict, repeats: int, *, shade: bool = True) -> dict:
+def time_technique(technique_id: str, scene, options: dict, repeats: int, *, shade: bool = True) -> dict:
     """Times ``technique_id``'s pass alone on ``scene`` at the capacities it needs (with ``shade``;
     else only its counters are read, from one call), and its stages (see :data:`STAGES`); returns a
     table row."""
-    pipeline, _ = render_without_overflow(pipeline_for(technique_id, outputs=("hdr",), **options),
-                                          lambda p: p(p.init_params(), scene))
-    shading = pipeline[technique_id]
-    params = pipeline.init_params()
-    inputs = pipeline(params, scene, outputs=shading.inputs)
-    run = jax.jit(lambda params, inputs, scene: shading.run(params[shading.name], inputs, scene)[:2])
-    timing = time_function(run, params, {k: inputs[k] for k in shading.inputs}, scene, repeats=repeats if shade else 1)
-    _, counters = timing.pop("result")
+    row, pipeline, inputs = time_pass(pipeline_for(technique_id, outputs=("hdr",), **options), scene, technique_id,
+                                      repeats=repeats if shade else 1)
     stages = {}
-    for stage, (fn, args) in STAGES.get(technique_id, lambda *_: {})(inputs, scene, shading.options).items():
+    for stage, (fn, args) in STAGES.get(technique_id, lambda *_: {})(inputs, scene, pipeline[technique_id].options).items():
         t = time_function(fn, *args, repeats=repeats)
         stages[stage] = {"compile_s": t["compile_s"], "run_ms_median": t["run_ms_median"],
                          "run_ms_min": t["run_ms_min"], "run_ms_max": t["run_ms_max"]}
-    return {
-        "technique": technique_id, "options": dict(shading.options), "capacities": capacities(pipeline).get(technique_id, {}),
-        "compile_s": timing["compile_s"], "run_ms_median": timing["run_ms_median"],
-        "run_ms_min": timing["run_ms_min"], "run_ms_max": timing["run_ms_max"],
-        "counters": {k: float(v) for k, v in counters.items()}, "stages": stages,
-    }
+    return {"technique": technique_id, **row, "stages": stages}
 
 
 def main(argv=None) -> list[dict]:
@@ -141,7 +129,7 @@ def main(argv=None) -> list[dict]:
         lights = uniform_in_box(jax.random.PRNGKey(0), count, lo, hi, light_range=args.range, intensity=3.0,
                                 spot_fraction=args.spot_fraction)
         lit = scene.replace(lights=lights)
-        rows = [dict(time_pass(t, lit, options.get(t, {}), args.repeats), lights=count) for t in techniques]
+        rows = [dict(time_technique(t, lit, options.get(t, {}), args.repeats), lights=count) for t in techniques]
         brute = next((r["run_ms_median"] for r in rows if r["technique"] == "deferred"), None)
         for r in rows:
             r["vs_deferred"] = None if brute is None else brute / r["run_ms_median"]

@@ -6,27 +6,33 @@ run``). The pass's inputs (G-buffer, shaded ``hdr``) are rendered once; then the
 (``Pass.run`` under ``jax.jit``) is timed: compile time apart, then the median, min and max of
 ``--repeats`` calls, each ended by ``block_until_ready``. Capacities are grown first until nothing
 overflows. ``--lights N`` replaces the config's lights with N point lights uniform in the scene's box
-(range ``--range``), e.g. the 64 lights of volumetric fog's target.
+(range ``--range``), e.g. the 64 lights of volumetric fog's target. Each row prints its counters;
+a path tracer's row (a ``paths`` counter) also its paths per second. ``--cloud-luts`` times the clouds'
+lookup-table precompute (``clouds.precompute_luts`` under ``jax.jit``) at the chapter's sizes, the
+defaults of the ``clouds`` options.
 
 Usage::
 
     python experiments/bench_media.py                                  # every config in configs/media/, 1920x1080
     python experiments/bench_media.py --techniques volumetric_fog --lights 64 --resolution 1920x1080
     python experiments/bench_media.py --techniques atmosphere --set pipeline.options.atmosphere.steps=3
+    python experiments/bench_media.py --techniques clouds_reference --resolution 320x180 --cloud-luts
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import inspect
 import json
 import pathlib
 
 import jax
 
-from gpupro.bench import device_info, time_function
+from gpupro.bench import device_info, time_function, time_pass
 from gpupro.config import build_pipeline, build_scene, load_config
-from gpupro.pipeline.capacity import capacities, render_without_overflow
 from gpupro.scene.light_generators import uniform_in_box
+from gpupro.technique import registered
 
 CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs" / "media"
 
@@ -43,18 +49,19 @@ def time_media_pass(technique_id: str, resolution: str, repeats: int, overrides=
         scene = scene.replace(lights=uniform_in_box(jax.random.PRNGKey(0), lights, lo, hi, light_range=light_range,
                                                     intensity=3.0))
     pipeline, _ = build_pipeline(config)
-    pipeline, _ = render_without_overflow(pipeline, lambda p: p(p.init_params(), scene))
-    media = pipeline[technique_id]
-    params = pipeline.init_params()
-    inputs = pipeline(params, scene, outputs=media.inputs)
-    run = jax.jit(lambda params, inputs, scene: media.run(params[media.name], inputs, scene)[:2])
-    timing = time_function(run, params, {k: inputs[k] for k in media.inputs}, scene, repeats=repeats)
-    _, counters = timing.pop("result")
-    return {"technique": technique_id, "resolution": resolution, "lights": scene.lights.count,
-            "options": dict(media.options), "capacities": capacities(pipeline).get(technique_id, {}),
-            "compile_s": timing["compile_s"], "run_ms_median": timing["run_ms_median"],
-            "run_ms_min": timing["run_ms_min"], "run_ms_max": timing["run_ms_max"],
-            "counters": {k: float(v) for k, v in counters.items()}}
+    row, _, _ = time_pass(pipeline, scene, technique_id, repeats=repeats)
+    return {"technique": technique_id, "resolution": resolution, "lights": scene.lights.count, **row}
+
+
+def time_cloud_luts(repeats: int) -> dict:
+    """Times ``clouds.precompute_luts`` (jitted) with the defaults of the ``clouds`` options."""
+    from gpupro.techniques.media import clouds
+
+    names = inspect.signature(clouds.precompute_luts).parameters
+    sizes = {o.name: o.default for o in registered()["clouds"].options if o.name in names}
+    timing = time_function(jax.jit(functools.partial(clouds.precompute_luts, **sizes)), repeats=repeats)
+    timing.pop("result")
+    return {"sizes": sizes, **{k: v for k, v in timing.items() if k != "run_ms"}}
 
 
 def main(argv=None) -> list[dict]:
@@ -65,6 +72,7 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--range", type=float, default=4.0, help="range of the --lights lights (world units)")
     parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE (repeatable)")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--cloud-luts", action="store_true", help="also time the clouds' LUT precompute")
     parser.add_argument("--json", help="write the results to this file")
     args = parser.parse_args(argv)
     ids = args.techniques.split(",") if args.techniques else sorted(p.stem for p in CONFIGS.glob("*.toml")
@@ -76,9 +84,17 @@ def main(argv=None) -> list[dict]:
     for r in rows:
         print(f"{r['technique']:<24} {r['lights']:>6} {r['compile_s']:>10.2f} {r['run_ms_median']:>10.3f} "
               f"{r['run_ms_min']:>9.3f} {r['run_ms_max']:>9.3f}")
+        print("    " + ", ".join(f"{k} {v:.4g}" for k, v in r["counters"].items()))
+        if "paths" in r["counters"]:
+            r["paths_per_second"] = r["counters"]["paths"] / (1e-3 * r["run_ms_median"])
+            print(f"    {r['paths_per_second']:.4g} paths/s")
+    luts = time_cloud_luts(args.repeats) if args.cloud_luts else None
+    if luts:
+        print(f"clouds LUT precompute {luts['sizes']}: compile {luts['compile_s']:.2f} s, "
+              f"median {luts['run_ms_median']:.1f} ms (min {luts['run_ms_min']:.1f}, max {luts['run_ms_max']:.1f})")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"device": device, "results": rows}, f, indent=2)
+            json.dump({"device": device, "results": rows, "cloud_luts": luts}, f, indent=2)
     return rows
 
 

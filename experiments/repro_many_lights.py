@@ -3,7 +3,7 @@
 Every subcommand writes ``table.md`` (the measured table, the published numbers beside it),
 ``data.json`` and, where matplotlib is importable, ``plot.png`` into ``--out``/<subcommand>/. Times
 are of the shading pass alone (its inputs rendered beforehand) or of one stage of it, through
-:func:`experiments.bench_lights.time_pass` (compile time apart, median of ``--repeats`` calls).
+:func:`experiments.bench_lights.time_technique` (compile time apart, median of ``--repeats`` calls).
 
 - ``assignment``: Olsson, Paper II, Table 2: light-assignment time of tiled and clustered shading
   for 32, 1024, 32768 and 1,048,576 lights uniform in the atrium's bounding box. Ranges: one range for
@@ -46,7 +46,7 @@ import numpy as np
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import gpupro as gp  # noqa: E402
-from bench_lights import time_pass  # noqa: E402
+from bench_lights import time_technique  # noqa: E402
 from gpupro.bench import device_info  # noqa: E402
 from gpupro.pipeline import pipeline_for  # noqa: E402
 from gpupro.pipeline.capacity import grown, overflows, render_without_overflow  # noqa: E402
@@ -91,7 +91,8 @@ def assignment(args) -> None:
     for count in args.counts:
         lit = scene.replace(lights=uniform_in_box(jax.random.PRNGKey(0), count, lo, hi, light_range=light_range, intensity=3.0))
         for technique in ("tiled_deferred", "clustered_deferred"):
-            row = time_pass(technique, lit, {}, args.repeats, shade=False)
+            options = {"assignment": "tree"} if technique == "clustered_deferred" else {}  # Paper II's method
+            row = time_technique(technique, lit, options, args.repeats, shade=False)
             rows.append({"lights": count, "technique": technique, "range": light_range,
                          "assignment_ms": row["stages"]["light assignment"]["run_ms_median"],
                          "stages": row["stages"], "counters": row["counters"]})
@@ -126,7 +127,7 @@ def crossover(args) -> None:
         for count in args.counts:
             lit = scene.replace(lights=uniform_in_box(jax.random.PRNGKey(0), count, lo, hi, light_range=args.range, intensity=3.0))
             for technique in ("tiled_deferred", "clustered_deferred"):
-                row = time_pass(technique, lit, {}, args.repeats)
+                row = time_technique(technique, lit, {}, args.repeats)
                 rows.append({"trees": trees, "lights": count, "technique": technique, "ms": row["run_ms_median"],
                              "lighting": row["counters"]["lighting_computations"],
                              "exact": row["counters"]["exact_lighting_computations"]})
@@ -266,7 +267,7 @@ def culling(args) -> None:
     lit = scene.replace(lights=uniform_in_box(jax.random.PRNGKey(0), count, lo, hi, light_range=args.range, intensity=3.0))
     rows = []
     for label, options in REFINEMENTS:
-        row = time_pass("tiled_culling", lit, options, args.repeats)
+        row = time_technique("tiled_culling", lit, options, args.repeats)
         rows.append({"refinement": label, "options": options, "culling_ms": row["stages"]["culling"]["run_ms_median"],
                      "pass_ms": row["run_ms_median"], "lighting": row["counters"]["lighting_computations"]})
     device = device_info()["device_kind"]

@@ -52,6 +52,31 @@ def time_function(fn: Callable[..., Any], *args, repeats: int = 10, warmup: int 
     }
 
 
+def time_pass(pipeline, scene, name: str, *, repeats: int) -> tuple[dict, Any, dict]:
+    """Times pass ``name`` of ``pipeline`` alone on ``scene``: capacities are first grown until nothing
+    overflows (:func:`gpupro.pipeline.capacity.render_without_overflow`), the pass's inputs rendered
+    once, then the pass alone is jitted and timed (:func:`time_function`).
+
+    Returns ``(row, pipeline, inputs)``: ``row`` a dict of ``options``, ``capacities``, ``compile_s``,
+    ``run_ms_median``/``min``/``max`` and ``counters`` (floats); the grown pipeline, and every buffer
+    it rendered up to the pass (for timing the pass's stages apart).
+    """
+    from gpupro.pipeline.capacity import capacities, render_without_overflow
+
+    pipeline, _ = render_without_overflow(pipeline, lambda p: p(p.init_params(), scene))
+    timed = pipeline[name]
+    params = pipeline.init_params()
+    inputs = pipeline(params, scene, outputs=timed.inputs)
+    run = jax.jit(lambda params, inputs, scene: timed.run(params[timed.name], inputs, scene)[:2])
+    timing = time_function(run, params, {k: inputs[k] for k in timed.inputs}, scene, repeats=repeats)
+    _, counters = timing.pop("result")
+    row = {"options": dict(timed.options), "capacities": capacities(pipeline).get(name, {}),
+           "compile_s": timing["compile_s"], "run_ms_median": timing["run_ms_median"],
+           "run_ms_min": timing["run_ms_min"], "run_ms_max": timing["run_ms_max"],
+           "counters": {k: float(v) for k, v in counters.items()}}
+    return row, pipeline, inputs
+
+
 def _cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:

@@ -335,16 +335,20 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     (target | before | after), comparison.exr (those buffers), error.png (|after − target|) and fitted.json
     (with the loss and mean absolute error before and after fitting).
 
-    The target is ``fit.target`` (an EXR file holding ``fit.buffer``) or, without it, a render of the
-    config as written, from which each parameter starts at its ``init`` value instead (so a config can
-    hide the truth and measure its recovery).
+    The target is ``fit.target`` (an EXR file holding ``fit.buffer``); or ``fit.target_config``, another
+    config (a path relative to this one, e.g. a path tracer's) whose render of ``fit.target_buffer``
+    (default ``fit.buffer``) is the target, seen through this config's ``[camera]`` and changed by the
+    overrides in ``fit.target_overrides`` (a list of ``key=value`` strings); or, without either, a render
+    of the config as written, from which each parameter starts at its ``init`` value instead (so a config
+    can hide the truth and measure its recovery).
     """
     config = load_config(config_path, overrides)
     source = config["_source"]
     section = config.get("fit")
     if not section:
         raise ConfigError(f"{source}: no [fit] section")
-    allowed = {"buffer", "loss", "optimizer", "learning_rate", "steps", "target", "parameters"}
+    allowed = {"buffer", "loss", "optimizer", "learning_rate", "steps", "target", "target_config", "target_buffer",
+               "target_overrides", "parameters"}
     unknown = set(section) - allowed
     if unknown:
         raise ConfigError(f"{source}: unknown key 'fit.{sorted(unknown)[0]}' (allowed here: {', '.join(sorted(allowed))})")
@@ -374,6 +378,15 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         if buffer not in images:
             raise ConfigError(f"{source}: fit.target: {section['target']} has no buffer {buffer!r} (has {sorted(images)})")
         target = images[buffer]
+        truth = None
+    elif "target_config" in section:
+        target_overrides = section.get("target_overrides", [])
+        if not (isinstance(target_overrides, list) and all(isinstance(o, str) for o in target_overrides)):
+            raise ConfigError(f"{source}: fit.target_overrides: expected a list of 'key=value' strings, "
+                              f"got {target_overrides!r}")
+        camera = [f"camera.{key}={json.dumps(value)}" for key, value in config.get("camera", {}).items()]
+        target = _render_target(pathlib.Path(source).parent / section["target_config"],
+                                section.get("target_buffer", buffer), camera + target_overrides, progress)
         truth = None
     else:
         target = pipeline.frame((buffer,))(params, scene)[buffer]
@@ -412,6 +425,19 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         }
     (out / "fitted.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _render_target(config_path: pathlib.Path, buffer: str, overrides: list[str], progress) -> jax.Array:
+    """``buffer`` [H, W, C] of the config at ``config_path`` (with ``overrides``), rendered without overflow."""
+    config = load_config(config_path, overrides)
+    pipeline, params = build_pipeline(config)
+    if buffer not in pipeline.buffers:
+        raise ConfigError(f"{config_path}: fit.target_buffer: no pass produces {buffer!r} "
+                          f"(buffers: {', '.join(pipeline.buffers)})")
+    scene = build_scene(config)
+    print(f"target: rendering {buffer!r} of {config_path.name}", file=progress)
+    _, out = render_without_overflow(pipeline, lambda p: p(params, scene, outputs=(buffer,)))
+    return out[buffer]
 
 
 _PLOT_LEFT, _PLOT_TOP, _PLOT_RIGHT, _PLOT_BOTTOM = 44, 20, 12, 32  # margins of plot_curve's axes, pixels

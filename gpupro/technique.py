@@ -20,6 +20,7 @@ of the pipeline produces; ``options`` are validated Python values (static: they 
 
 from __future__ import annotations
 
+import concurrent.futures
 import math
 import numbers
 import typing
@@ -303,3 +304,12 @@ def default_params(technique: Technique, overrides: Mapping[str, Any] | None = N
     if not technique.params:
         return None
     return {p.name: param_array(p, overrides.get(p.name, p.default)) for p in technique.params}
+
+
+def outside_trace(fn: Callable, *args):
+    """``fn(*args)`` run on a fresh thread, where no JAX trace is active (trace state is per thread): for
+    tables a technique builds from its static options (lookup tables, voxel grids), computed once and
+    compiled even when the call comes from inside the traced frame (``jax.ensure_compile_time_eval`` would
+    evaluate them op by op, many times slower). Cache the result on the options."""
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        return pool.submit(fn, *args).result()

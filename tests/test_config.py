@@ -99,7 +99,7 @@ BUILD_ERRORS = {
                                  r"pipeline\.params\.deferred\.ambient: expected shape \[3\], got \[2\]"),
     "bad pass option": (CORNELL + '[pipeline.options.deferred]\ndistribution = "phong"\n',
                         r"pipeline\.options\.deferred\.distribution: expected one of \['ggx', 'beckmann'\], got 'phong'"),
-    "unknown pass option": (CORNELL + "[pipeline.options.deferred]\nchunk = 8\n", r"pipeline\.options\.deferred\.chunk: unknown option of technique 'deferred' \(options: distribution, light_chunk\)"),
+    "unknown pass option": (CORNELL + "[pipeline.options.deferred]\nchunk = 8\n", r"pipeline\.options\.deferred\.chunk: unknown option of technique 'deferred' \(options: distribution, light_chunk, light_loop\)"),
     "uniform_in_box without count": (CORNELL + '[lights]\ngenerator = "uniform_in_box"\nrange = 2.0\n',
                                      r"lights\.count is required by generator 'uniform_in_box'"),
     "along_path without path": (CORNELL + '[lights]\ngenerator = "along_path"\ncount = 4\nrange = 2.0\n',
@@ -447,7 +447,7 @@ def test_pipeline_options_and_params_reach_the_pipeline(tmp_path):
                       '[outputs]\nbuffers = ["hdr", "normal"]\n')
     _, _, (pipeline, params) = build(write(tmp_path, text))
     assert [p.name for p in pipeline.passes] == ["raster", "gbuffer", "forward", "post"]
-    assert dict(pipeline["forward"].options) == {"distribution": "beckmann", "light_chunk": 8}
+    assert dict(pipeline["forward"].options) == {"distribution": "beckmann", "light_chunk": 8, "light_loop": "auto"}
     assert pipeline.outputs == ("hdr", "normal")
     np.testing.assert_allclose(params["forward"]["ambient"], [0.1, 0.2, 0.3])
     np.testing.assert_array_equal(params["forward"]["background"], [0.0, 0.0, 0.0])

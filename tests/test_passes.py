@@ -88,7 +88,7 @@ def test_bad_pass_options_are_named():
         make_pass("post", operator="filmic")
     with pytest.raises(ValueError, match=r"pcf: expected an odd integer >= 1, got 2"):
         make_pass("shadow_maps", pcf=2)
-    with pytest.raises(ValueError, match=r"shadows: unknown option of technique 'deferred' \(options: distribution, light_chunk\)"):
+    with pytest.raises(ValueError, match=r"shadows: unknown option of technique 'deferred' \(options: distribution, light_chunk, light_loop\)"):
         make_pass("deferred", shadows=True)
     with pytest.raises(ValueError, match=r"distribution: expected"):
         gp.default_pipeline().with_options("deferred", distribution="phong")

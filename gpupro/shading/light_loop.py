@@ -135,7 +135,7 @@ def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_c
 
 
 def accumulate_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, *, shadow=None,
-                      distribution: str = "ggx", light_chunk: int | None = None):
+                      distribution: str = "ggx", light_chunk: int | None = None, light_loop: str = "auto"):
     """Σ_i brdf(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i over all N lights, chunked over lights.
 
     ``points`` [P, 3] world positions; ``normals`` [P, 3] unit normals; ``views`` [P, 3] unit vectors
@@ -143,10 +143,24 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     (see :class:`gpupro.scene.Lights` for units); ``shadow``: None, or [P, K] visibility in [0, 1] of
     the first K ≤ N lights (lights K … N−1 are unshadowed); ``distribution`` (static) "ggx" or
     "beckmann"; ``light_chunk`` (static) lights per scan step (capped at N; None: :func:`default_light_chunk`), the peak
-    intermediate being [P, light_chunk, 3]. Returns radiance [P, 3] (W/(m² sr) for the light units of
-    :mod:`gpupro.shading.light_falloff`). The loop shared by deferred and forward shading.
+    intermediate being [P, light_chunk, 3]; ``light_loop`` (static): "scan" (the chunked XLA scan),
+    "kernel" (the fused kernel of :mod:`gpupro.shading.light_kernel`, interpreted off GPUs; GGX and no
+    shadows only) or "auto" (the kernel on GPUs where it applies and there are lights, else the scan). Returns
+    radiance [P, 3] (W/(m² sr) for the light units of :mod:`gpupro.shading.light_falloff`). The loop
+    shared by deferred and forward shading.
     """
     points = jnp.asarray(points, jnp.float32)
+    if light_loop == "auto":
+        kernel = jax.default_backend() == "gpu" and shadow is None and distribution == "ggx" and lights.count > 0
+        light_loop = "kernel" if kernel else "scan"
+    if light_loop == "kernel" and lights.count > 0:
+        if shadow is not None or distribution != "ggx":
+            raise ValueError("accumulate_lights: the light-loop kernel takes GGX and no shadow factors only")
+        from gpupro.shading.light_kernel import fused_accumulate_lights  # it builds on this module
+
+        terms = view_terms(normals, views, base_color=base_color, roughness=roughness, metallic=metallic,
+                           distribution=distribution)
+        return fused_accumulate_lights(points, terms, lights, interpret=jax.default_backend() != "gpu")
     terms = surface_terms(normals, views, base_color, roughness, metallic, distribution=distribution)
     radiance = lambda chunk_lights: light_radiance(points, terms, chunk_lights, distribution=distribution)
     return sum_over_lights(radiance, lights, points.shape[0], shadow=shadow, light_chunk=light_chunk)
@@ -167,7 +181,8 @@ def light_reaches(lights: Lights, points):
 
 
 def accumulate_light_lists(points, normals, views, base_color, roughness, metallic, lights: Lights, lists, *,
-                           list_of_group=None, shadow=None, distribution: str = "ggx", light_chunk: int | None = None):
+                           list_of_group=None, shadow=None, distribution: str = "ggx", light_chunk: int | None = None,
+                           light_loop: str = "auto"):
     """Σ over the lights of each group's list of brdf · E⊥ · max(n·l, 0) · s: the light loop of tiled
     (and clustered) shading, with the per-light arithmetic of :func:`accumulate_lights`.
 
@@ -178,7 +193,9 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     None (group g evaluates row g, C rows = G), or int32 [G]: the row of ``lists`` [R, C] that each
     group evaluates (−1: none; e.g. each pixel's cluster); ``shadow``: None or
     [G, Q, K] visibility of the first K ≤ N lights; ``distribution``, ``light_chunk`` (static) as in
-    :func:`accumulate_lights` (list slots per step, capped at C).
+    :func:`accumulate_lights` (list slots per step, capped at C); ``light_loop`` (static) "scan" (the
+    bucketed XLA loop below), "kernel" (:func:`gpupro.shading.light_kernel.light_list_sums`; GGX, no
+    shadows) or "auto" (the kernel on GPUs where it applies).
     Returns ``(radiance [G, Q, 3], reached [G, Q] float32)``: ``reached`` counts the listed lights whose
     influence truly reaches each point (:func:`light_reaches`).
 
@@ -204,7 +221,11 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     else:  # −1 picks an appended empty row
         lists = jnp.concatenate([lists, jnp.full((1, capacity), -1, jnp.int32)])
         rows = jnp.where(jnp.asarray(list_of_group) < 0, lists.shape[0] - 1, jnp.asarray(list_of_group, jnp.int32))
-    return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+    if light_loop == "auto":
+        light_loop = "kernel" if jax.default_backend() == "gpu" and shadow is None and distribution == "ggx" else "scan"
+    elif light_loop == "kernel" and (shadow is not None or distribution != "ggx"):
+        raise ValueError("accumulate_light_lists: the light-loop kernel takes GGX and no shadow factors only")
+    return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
 
 
 WORK_PER_STEP = 1 << 21
@@ -311,17 +332,38 @@ def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribu
             reached.reshape((n_blocks * items, n_per_group))[unsort])
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6))
-def _light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
+def _kernel_light_lists(surface, lights: Lights, lists, rows):
+    """:func:`accumulate_light_lists` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
+    shadows; interpreted off GPUs)."""
+    from gpupro.shading.light_kernel import light_list_sums  # it builds on this module
+
+    points, normals, views, base_color, roughness, metallic = surface
+    n_groups, n_per_group = points.shape[:2]
+    flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
+    terms = view_terms(flat(normals), flat(views), base_color=flat(base_color), roughness=flat(roughness),
+                       metallic=flat(metallic))
+    radiance, reached = light_list_sums(flat(points), terms, lights, lists, jnp.repeat(rows, n_per_group),
+                                        interpret=jax.default_backend() != "gpu")
+    return radiance.reshape(n_groups, n_per_group, 3), reached.reshape(n_groups, n_per_group)
+
+
+def _list_sums(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int, light_loop: str):
+    if light_loop == "kernel":
+        return _kernel_light_lists(surface, lights, lists, rows)
     return _bucketed_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
 
 
-def _light_lists_forward(surface, lights, lists, rows, shadow, distribution, chunk):
-    result = _bucketed_light_lists(surface, lights, lists, rows, shadow, distribution, chunk)
+@functools.partial(jax.custom_vjp, nondiff_argnums=(5, 6, 7))
+def _light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int, light_loop: str):
+    return _list_sums(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
+
+
+def _light_lists_forward(surface, lights, lists, rows, shadow, distribution, chunk, light_loop):
+    result = _list_sums(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
     return result, (surface, lights, lists, rows, shadow)
 
 
-def _light_lists_backward(distribution, chunk, saved, cotangent):
+def _light_lists_backward(distribution, chunk, light_loop, saved, cotangent):
     surface, lights, lists, rows, shadow = saved
     _, pullback = jax.vjp(lambda s, l, sh: _padded_light_lists(s, l, lists, rows, sh, distribution, chunk),
                           surface, lights, shadow)
@@ -333,14 +375,22 @@ def _light_lists_backward(distribution, chunk, saved, cotangent):
 _light_lists.defvjp(_light_lists_forward, _light_lists_backward)
 
 
+LIGHT_LOOPS = ("auto", "scan", "kernel")
+"""Implementations of the all-lights loop (:func:`accumulate_lights`)."""
+
+
 def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribution: str, light_chunk: int | None,
-                        caller: str):
+                        caller: str, light_loop: str = "auto"):
     """Raises ``ValueError`` naming ``caller`` and the problem for a bad distribution, light chunk or
     shadow shape (``shadow_shape`` None or [H, W, K] with K ≤ N; ``image_shape`` (H, W))."""
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"{caller}: distribution must be one of {DISTRIBUTIONS}, got {distribution!r}")
     if light_chunk is not None and (not isinstance(light_chunk, int) or isinstance(light_chunk, bool) or light_chunk < 1):
         raise ValueError(f"{caller}: light_chunk must be a positive int, got {light_chunk!r}")
+    if light_loop not in LIGHT_LOOPS:
+        raise ValueError(f"{caller}: light_loop must be one of {LIGHT_LOOPS}, got {light_loop!r}")
+    if light_loop == "kernel" and (shadow_shape is not None or distribution != "ggx"):
+        raise ValueError(f"{caller}: the light-loop kernel takes GGX and no shadow factors only (use 'scan' or 'auto')")
     if shadow_shape is not None:
         if len(shadow_shape) != 3 or tuple(shadow_shape[:2]) != tuple(image_shape) or shadow_shape[2] > lights.count:
             raise ValueError(
@@ -369,7 +419,7 @@ def compose_radiance(coverage, direct, emission, base_color, metallic, *, ambien
 
 
 def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, emission, lights: Lights, eye, *,
-                   ambient, shadow, background, distribution: str, light_chunk: int | None):
+                   ambient, shadow, background, distribution: str, light_chunk: int | None, light_loop: str = "auto"):
     """Shades per-pixel surface attributes and counts the work; the body of deferred and forward shading.
 
     ``coverage`` [H, W]; ``position``, ``normal``, ``base_color``, ``emission`` [H, W, 3];
@@ -386,7 +436,8 @@ def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, 
     views = view_directions(points, eye)
     flat_shadow = None if shadow is None else flat(shadow)
     direct = accumulate_lights(points, normals, views, flat(base_color), flat(roughness), flat(metallic), lights,
-                               shadow=flat_shadow, distribution=distribution, light_chunk=light_chunk)
+                               shadow=flat_shadow, distribution=distribution, light_chunk=light_chunk,
+                               light_loop=light_loop)
     hdr = compose_radiance(coverage, direct.reshape(height, width, 3), emission, base_color, metallic,
                            ambient=ambient, background=background)
     n_covered = jnp.sum(jnp.asarray(coverage) > 0, dtype=jnp.int32)

@@ -38,7 +38,9 @@ space (camera at the origin looking down −z, view depth d = −z):
    ``assignment = "brute_force"`` tests every (cluster, light) pair; ``"tree"`` finds the same pairs
    through the per-frame light tree of :mod:`gpupro.techniques.lights.light_tree` (Morton-sorted
    lights, B = ``tree_branching`` children per node, level-by-level frontier of ``frontier_capacity``
-   pairs). Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
+   pairs), as Paper II does; ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots ×
+   lights and the tree beyond (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in
+   0.87 ms, the tree in 5.37 ms; docs/benchmarks.md). Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
    ascending light indices; the excess is dropped and counted (``cluster_list_overflow``; grown to
    ``max_lights_per_cluster``).
 5. Shading: each pixel evaluates the list of its cluster with the per-light arithmetic of brute force
@@ -62,16 +64,16 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.numerics import einsum
-from gpupro.raster import surface_from_fragments
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, Lights
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, transform_lights
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
+from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.lights.light_tree import build_light_tree, traverse
-from gpupro.techniques.lights.tiled import TILED_COUNTERS, fill_light_lists, tile_grid
-from gpupro.techniques.raster.gbuffer import SURFACE, fragments_from
+from gpupro.techniques.lights.tiled import TILED_COUNTERS, fill_light_lists, from_tiles, tile_grid, to_tiles
+from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
 
 NO_KEY = jnp.iinfo(jnp.int32).max
@@ -338,12 +340,17 @@ def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int):
     return lists, counts[:clusters].astype(jnp.int32)
 
 
+BRUTE_FORCE_PAIRS = 1 << 25
+"""Largest (cluster slot, light) count that ``assignment = "auto"`` tests by brute force (each pair array
+of that many int32 is 128 MiB)."""
+
+
 def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignment: str,
                   cluster_light_capacity: int, tree_branching: int, frontier_capacity: int):
     """Step 4: per-cluster light lists, by brute force or through the light tree (the same lists).
 
     ``lights`` N lights (world space); ``camera`` gives the view transform; ``clusters`` C slots;
-    static: ``assignment`` ("tree" or "brute_force"), ``cluster_light_capacity``, ``tree_branching``,
+    static: ``assignment`` ("tree", "brute_force" or "auto"), ``cluster_light_capacity``, ``tree_branching``,
     ``frontier_capacity``. Returns ``(lists int32 [C, L], counts int32 [C], counters)``, L =
     min(cluster_light_capacity, N), counts before truncation; counters ``cluster_light_tests``,
     ``tree_nodes_tested``, ``lights_backface_culled``, ``frontier_overflow``, ``max_frontier``.
@@ -358,6 +365,8 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
     lights_view = transform_lights(lights, camera.view_matrix())
     leaf_lower, leaf_upper, centre = light_leaf_boxes(lights_view)
     tests = lambda c, l: pair_tests(clusters, lights_view, leaf_lower, leaf_upper, c, l)
+    if assignment == "auto":
+        assignment = "brute_force" if n_clusters * n_lights <= BRUTE_FORCE_PAIRS else "tree"
     if assignment == "brute_force":
         cluster = jnp.repeat(jnp.arange(n_clusters, dtype=jnp.int32), n_lights)
         light = jnp.tile(jnp.arange(n_lights, dtype=jnp.int32), n_clusters)
@@ -382,6 +391,11 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
     return lists, counts, stats
 
 
+SHADING_TILE = 16
+"""Side of the screen tiles whose pixels are shaded consecutively (16² = one program of the light-list
+kernel, :data:`gpupro.shading.light_kernel.BLOCK_PIXELS`)."""
+
+
 def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, camera: Camera, *, ambient, background,
                         shadow=None, distribution: str, light_chunk: int | None):
     """Step 5: every pixel shaded with the list of its cluster through the shared light loop.
@@ -392,17 +406,22 @@ def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, cam
     ``reached`` counts the listed lights whose influence reaches each pixel.
     """
     shape = jnp.shape(surface["coverage"])
-    flat = lambda key: jnp.asarray(surface[key], jnp.float32).reshape((shape[0] * shape[1], 1) + jnp.shape(surface[key])[2:])
-    points = flat("position")
+    # Pixels in screen-tile order, so that consecutive pixels (one program of the GPU light-list kernel)
+    # share few clusters and walk lists of similar length; one group of one pixel each.
+    in_tiles = lambda image: to_tiles(jnp.asarray(image, jnp.float32), tile=SHADING_TILE)
+    flat = lambda image: in_tiles(image).reshape((-1, 1) + jnp.shape(image)[2:])
+    points = flat(surface["position"])
     views = view_directions(points.reshape(-1, 3), camera.eye)[:, None, :]
+    clusters = (to_tiles(jnp.reshape(pixel_cluster, shape) + 1, tile=SHADING_TILE) - 1).reshape(-1)  # padding: −1
     direct, reached = accumulate_light_lists(
-        points, flat("normal"), views, flat("base_color"), flat("roughness"), flat("metallic"), lights, lists,
-        list_of_group=pixel_cluster,
-        shadow=None if shadow is None else jnp.asarray(shadow, jnp.float32).reshape(-1, 1, jnp.shape(shadow)[-1]),
-        distribution=distribution, light_chunk=light_chunk)
-    hdr = compose_radiance(surface["coverage"], direct.reshape(shape + (3,)), surface["emission"],
-                           surface["base_color"], surface["metallic"], ambient=ambient, background=background)
-    return hdr, reached[:, 0]
+        points, flat(surface["normal"]), views, flat(surface["base_color"]), flat(surface["roughness"]),
+        flat(surface["metallic"]), lights, lists, list_of_group=clusters,
+        shadow=None if shadow is None else flat(shadow), distribution=distribution, light_chunk=light_chunk)
+    n_tiles = points.shape[0] // SHADING_TILE ** 2
+    direct = from_tiles(direct.reshape(n_tiles, SHADING_TILE ** 2, 3), shape, tile=SHADING_TILE)
+    hdr = compose_radiance(surface["coverage"], direct, surface["emission"], surface["base_color"], surface["metallic"],
+                           ambient=ambient, background=background)
+    return hdr, from_tiles(reached.reshape(n_tiles, SHADING_TILE ** 2), shape, tile=SHADING_TILE).reshape(-1)
 
 
 def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
@@ -463,16 +482,7 @@ def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, no
     return {"hdr": hdr}, counters
 
 
-def apply_forward(params, inputs, scene, *, distribution, light_chunk, tile, normal_bins, bounds, normal_cones,
-                  assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity):
-    """Clustered forward shading of the rasterizer's fragments → ``hdr`` [H, W, 3]."""
-    options = dict(distribution=distribution, light_chunk=light_chunk, tile=tile, normal_bins=normal_bins,
-                   bounds=bounds, normal_cones=normal_cones, assignment=assignment, cluster_capacity=cluster_capacity,
-                   cluster_light_capacity=cluster_light_capacity, tree_branching=tree_branching,
-                   frontier_capacity=frontier_capacity)
-    surface = surface_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera.eye)
-    hdr, counters = _shade(params, surface, scene, inputs.get("shadow"), options)
-    return {"hdr": hdr}, counters
+apply_forward = forward_of(apply_deferred, "Clustered forward shading of the rasterizer's fragments → ``hdr`` [H, W, 3].")
 
 
 CLUSTERED_OPTIONS = SHADING_OPTIONS + (
@@ -481,7 +491,9 @@ CLUSTERED_OPTIONS = SHADING_OPTIONS + (
     Option("bounds", "implicit", one_of("implicit", "explicit"), "cluster AABBs from the key's sub-frustum, or the min/max of the samples"),
     Option("normal_cones", "none", one_of("none", "key", "samples"),
            "back-face cull lights with each cluster's normal cone: none, from the key's normal bin, or from the samples' normals"),
-    Option("assignment", "tree", one_of("tree", "brute_force"), "light assignment through the light tree, or every cluster × light pair"),
+    Option("assignment", "auto", one_of("auto", "tree", "brute_force"),
+           "light assignment: through the light tree, every cluster × light pair, or auto (brute force up to "
+           "2^25 pairs, the tree beyond)"),
     Option("cluster_capacity", 1024, integer(1), "occupied clusters kept (grown by the entry points on overflow)"),
     Option("cluster_light_capacity", 128, integer(1), "light slots per cluster list (grown by the entry points on overflow)"),
     Option("tree_branching", 32, integer(2), "children per light-tree node (32 as in the paper)"),
@@ -511,8 +523,10 @@ CLUSTERED_NOTES = ("Missing from Paper II: the tile-local sort and the page tabl
                    "(here one global sort and compaction, Fig. 5), the packed light-index list (here a padded [C, L] "
                    "array), the warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed "
                    "capacity), MSAA and transparency. Spot lights are culled as cones, not as the paper's spheres.")
+# The generic tests take the light tree (its frontier capacity among the capacities they force small);
+# brute-force assignment, "auto"'s choice at these sizes, is checked against it in tests/test_clustered.py.
 CLUSTERED_EXAMPLE = {"tile": 8, "tree_branching": 4, "cluster_capacity": 256, "cluster_light_capacity": 32,
-                     "frontier_capacity": 1024}
+                     "frontier_capacity": 1024, "assignment": "tree"}
 
 register(Technique(
     id="clustered_deferred",

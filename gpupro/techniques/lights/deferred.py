@@ -20,7 +20,7 @@ import jax.numpy as jnp
 
 from gpupro.scene.lights import Lights
 from gpupro.shading.brdfs import DISTRIBUTIONS
-from gpupro.shading.light_loop import check_shading_inputs, shade_surfaces
+from gpupro.shading.light_loop import LIGHT_LOOPS, check_shading_inputs, shade_surfaces
 from gpupro.technique import Buffer, Counter, Option, Param, Technique, integer, one_of, optional, register
 from gpupro.techniques.raster.gbuffer import SURFACE
 
@@ -28,7 +28,7 @@ DEFERRED_INPUTS = ("coverage", "position", "normal", "base_color", "roughness", 
 """G-buffer entries that :func:`shade_deferred` reads."""
 
 def shade_deferred(gbuffer: dict, lights: Lights, eye, *, ambient=(0.0, 0.0, 0.0), distribution: str = "ggx",
-                   light_chunk: int | None = None, shadow=None, background=(0.0, 0.0, 0.0)):
+                   light_chunk: int | None = None, shadow=None, background=(0.0, 0.0, 0.0), light_loop: str = "auto"):
     """Deferred shading of a G-buffer by brute force over all lights (the many-light reference).
 
     ``gbuffer``: dict with at least ``coverage`` [H, W] (1 covered, 0 empty), ``position`` [H, W, 3]
@@ -44,6 +44,7 @@ def shade_deferred(gbuffer: dict, lights: Lights, eye, *, ambient=(0.0, 0.0, 0.0
     ``distribution`` (static): microfacet distribution, "ggx" or "beckmann".
     ``light_chunk`` (static): lights per scan step; peak memory is [H·W, light_chunk, 3] floats;
     None picks :func:`default_light_chunk` for the backend.
+    ``light_loop`` (static): "auto", "scan" or "kernel", as in :func:`gpupro.shading.light_loop.accumulate_lights`.
 
     Returns ``(hdr, counters)``: ``hdr`` float32 [H, W, 3] radiance; ``counters``:
     ``lighting_computations`` (covered pixels × N, float32 so it cannot wrap) and ``lights`` (N, int32).
@@ -62,9 +63,11 @@ def shade_deferred(gbuffer: dict, lights: Lights, eye, *, ambient=(0.0, 0.0, 0.0
         if gbuffer[key].shape != shape + tail:
             raise ValueError(f"shade_deferred: G-buffer {key} must have shape {list(shape + tail)}, got {list(gbuffer[key].shape)}")
     check_shading_inputs(lights, None if shadow is None else jnp.shape(shadow), shape,
-                         distribution=distribution, light_chunk=light_chunk, caller="shade_deferred")
+                         distribution=distribution, light_chunk=light_chunk, caller="shade_deferred",
+                         light_loop=light_loop)
     return shade_surfaces(*(gbuffer[key] for key in DEFERRED_INPUTS), lights, eye, ambient=ambient, shadow=shadow,
-                          background=background, distribution=distribution, light_chunk=light_chunk)
+                          background=background, distribution=distribution, light_chunk=light_chunk,
+                          light_loop=light_loop)
 
 
 SHADOW = Buffer("shadow", "visibility in [0, 1] of the first K lights [H, W, K] (from a shadow-map pass)", "", optional=True)
@@ -83,13 +86,16 @@ SHADING_COUNTERS = (
     Counter("lights", "lights in the scene"),
 )
 """Options, parameters and counters shared with every technique that shades like this one."""
+LIGHT_LOOP_OPTION = Option("light_loop", "auto", one_of(*LIGHT_LOOPS),
+                           "all-lights loop: scan (XLA, chunked), kernel (one fused GPU kernel; GGX, no shadows; "
+                           "interpreted off GPUs), auto (the kernel on GPUs where it applies)")
 
 
-def apply(params, inputs, scene, *, distribution, light_chunk):
+def apply(params, inputs, scene, *, distribution, light_chunk, light_loop):
     """Deferred shading of the G-buffer ``inputs`` by all of ``scene.lights`` → ``hdr`` [H, W, 3]."""
     gbuffer = {key: inputs[key] for key in DEFERRED_INPUTS}
     hdr, counters = shade_deferred(gbuffer, scene.lights, scene.camera.eye, ambient=params["ambient"],
-                                   distribution=distribution, light_chunk=light_chunk, shadow=inputs.get("shadow"),
+                                   distribution=distribution, light_chunk=light_chunk, shadow=inputs.get("shadow"), light_loop=light_loop,
                                    background=params["background"])
     return {"hdr": hdr}, counters
 
@@ -103,7 +109,7 @@ register(Technique(
     apply=apply,
     inputs=tuple(b for b in SURFACE if b.name in DEFERRED_INPUTS) + (SHADOW,),
     outputs=(HDR,),
-    options=SHADING_OPTIONS,
+    options=SHADING_OPTIONS + (LIGHT_LOOP_OPTION,),
     params=SHADING_PARAMS,
     counters=SHADING_COUNTERS,
 ))

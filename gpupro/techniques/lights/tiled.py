@@ -40,7 +40,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from gpupro.numerics import einsum
-from gpupro.raster import surface_from_fragments
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import light_spheres
@@ -49,7 +48,8 @@ from gpupro.technique import BOOLEAN, Capacity, Counter, Option, Technique, inte
 from gpupro.techniques.lights.deferred import (
     DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW,
 )
-from gpupro.techniques.raster.gbuffer import SURFACE, fragments_from
+from gpupro.techniques.lights.forward import forward_of
+from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
 
 def screen_bounds(centre, radius, camera: Camera):
@@ -242,15 +242,7 @@ def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, ti
     return {"hdr": hdr}, counters
 
 
-def apply_forward(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds):
-    """Tiled forward shading of the rasterizer's fragments → ``hdr`` [H, W, 3]."""
-    surface = surface_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera.eye)
-    view_depth = jnp.where(surface["coverage"] > 0, view_depth_of(surface["position"], scene.camera), 0.0)
-    hdr, counters = shade_tiled(surface, view_depth, scene.lights, scene.camera, ambient=params["ambient"],
-                                background=params["background"], shadow=inputs.get("shadow"),
-                                distribution=distribution, light_chunk=light_chunk, tile=tile,
-                                tile_capacity=tile_capacity, depth_bounds=depth_bounds)
-    return {"hdr": hdr}, counters
+apply_forward = forward_of(apply_deferred, "Tiled forward shading of the rasterizer's fragments → ``hdr`` [H, W, 3].")
 
 
 TILED_OPTIONS = SHADING_OPTIONS + (

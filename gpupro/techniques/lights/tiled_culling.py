@@ -79,17 +79,16 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.numerics import einsum
-from gpupro.raster import surface_from_fragments
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, sphere_meets_light, transform_lights
 from gpupro.technique import Check, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
+from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.lights.tiled import (
     TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles, shade_light_lists, tile_grid, to_tiles,
-    view_depth_of,
 )
-from gpupro.techniques.raster.gbuffer import SURFACE, fragments_from
+from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
 
 LIGHT_BUFFERS = ("compact", "full")
@@ -396,17 +395,7 @@ def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, ti
     return {"hdr": hdr}, counters
 
 
-def apply_forward(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, light_buffer,
-                  depth_partition, bounds, depth_reduction):
-    """Forward+ shading of the rasterizer's fragments → ``hdr`` [H, W, 3]."""
-    surface = surface_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera.eye)
-    view_depth = jnp.where(surface["coverage"] > 0, view_depth_of(surface["position"], scene.camera), 0.0)
-    hdr, counters = shade_tiled_culling(
-        surface, view_depth, scene.lights, scene.camera, ambient=params["ambient"], background=params["background"],
-        shadow=inputs.get("shadow"), distribution=distribution, light_chunk=light_chunk, tile=tile,
-        tile_capacity=tile_capacity, light_buffer=light_buffer, depth_partition=depth_partition, bounds=bounds,
-        depth_reduction=depth_reduction)
-    return {"hdr": hdr}, counters
+apply_forward = forward_of(apply_deferred, "Forward+ shading of the rasterizer's fragments → ``hdr`` [H, W, 3].")
 
 
 POWER_OF_TWO = Check(lambda v: integer(2).test(v) and v & (v - 1) == 0, "a power of two >= 2")

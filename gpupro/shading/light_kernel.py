@@ -1,0 +1,254 @@
+"""The all-lights loop as one fused GPU kernel (Pallas, Triton backend): the fast form of brute force.
+
+Source: Olsson's thesis (seed), overview chapter, sec. 2, and Paper I, sec. 2, step 4 — the per-sample
+loop over lights of brute-force deferred shading, L_o = Σ_i f(n, v, l_i) · E⊥_i · max(n·l_i, 0) (the
+equations of :mod:`gpupro.shading.light_loop`).
+
+Why a kernel. Under XLA the loop is a scan over chunks of lights whose body compiles to several
+fusions, each writing [pixels, chunk] intermediates to memory and reading them back (profiled on an
+H200: about seven such arrays per step, 120 GB per 1080p frame of 1,024 lights; docs/benchmarks.md).
+The kernel instead gives each program a block of pixels, keeps their surface terms and running sums in
+registers, and walks the lights ``lights_per_step`` at a time, reading only the lights from memory: the
+way a pixel shader runs the loop, on blocks [pixels, 1] × [1, lights].
+
+Shared code. Triton blocks cannot have a last axis of 3, so the kernel holds vectors as three component
+arrays. The per-light arithmetic is the XLA path's, term for term (:func:`gpupro.shading.light_falloff.
+incident_light`, then the specular lobe of :func:`gpupro.shading.brdfs.brdf_towards`): every scalar
+function in it (distance and spot falloff, the GGX distribution and visibility, Schlick's Fresnel) and
+the light-independent view terms are the same functions; only the vector glue (distances, the half
+vector, dot products) is written on components here. The array path is not written on components
+too because XLA fuses that form worse: measured on an H200, it made brute force 1.5× and clustered
+shading 3.4× slower. tests/test_light_kernel.py checks the two agree. GGX only: Triton lowers no erfc,
+which the Beckmann visibility needs.
+
+Gradients: the kernel has no derivative of its own. :func:`fused_accumulate_lights` is a custom VJP
+whose backward pass is the derivative of the XLA scan (recomputed), so fitting through it works.
+
+On the CPU the kernel runs in Pallas' interpreter (``interpret=True``), which the tests use to check it
+against the XLA path; :func:`gpupro.shading.light_loop.accumulate_lights` uses the kernel only on GPUs.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+
+from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
+from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
+from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, spot_falloff
+from gpupro.shading.light_loop import light_radiance, pad_lights, sum_over_lights
+
+_TERMS_SCALAR = ("n_dot_v", "alpha", "visibility_v")
+_TERMS_VECTOR = ("n", "v", "f0", "diffuse")
+_LIGHTS_SCALAR = ("kind", "range", "cos_inner", "cos_outer")
+_LIGHTS_VECTOR = ("position", "direction", "color")
+_PIXEL_ARRAYS = 3 + len(_TERMS_SCALAR) + 3 * len(_TERMS_VECTOR)
+
+# Measured on an H200, 1920×1080 random surfaces, 1,024 lights (pixels per program, lights per step → ms):
+# (256, 1) 16.3, (64, 8) 16.8, (128, 1) 18.0, (128, 4) 19.4, (64, 4) 20.2, (256, 4) 22.5, (128, 8) 24.0.
+BLOCK_PIXELS = 256
+"""Pixels per kernel program (a power of two, as Triton's blocks must be)."""
+LIGHTS_PER_STEP = 1
+"""Lights read and evaluated per loop step of a program (a power of two)."""
+
+
+def _components(x) -> list:
+    return [x[..., 0], x[..., 1], x[..., 2]]
+
+
+def _pixel_arrays(points, terms: dict, padded: int) -> list:
+    """The 17 per-pixel float32 arrays [padded] the kernel reads: position, then the view terms."""
+    parts = _components(points)
+    parts += [terms[name] for name in _TERMS_SCALAR]
+    for name in _TERMS_VECTOR:
+        parts += _components(terms[name])
+    return [jnp.pad(jnp.asarray(p, jnp.float32).reshape(-1), (0, padded - points.shape[0])) for p in parts]
+
+
+def _light_arrays(lights: Lights) -> list:
+    """The 13 per-light arrays [N] the kernel reads (``kind`` int32, the rest float32)."""
+    parts = [getattr(lights, name) for name in _LIGHTS_SCALAR]
+    for name in _LIGHTS_VECTOR:
+        parts += _components(getattr(lights, name))
+    return parts
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _radiance(point, terms: dict, light: dict):
+    """brdf · E⊥ · max(n·l, 0) (R, G, B) of broadcastable component blocks, as
+    :func:`gpupro.shading.light_loop.light_radiance` computes it (see the module docstring)."""
+    directional = light["kind"] == DIRECTIONAL
+    delta = tuple(p - x for p, x in zip(light["position"], point))
+    distance = jnp.sqrt(jnp.maximum(_dot(delta, delta), _DISTANCE_SQ_MIN))
+    to_point_light = tuple(d / distance for d in delta)
+    to_light = tuple(jnp.where(directional, -d, t) for d, t in zip(light["direction"], to_point_light))
+    attenuation = distance_falloff(distance, jnp.where(directional, 1.0, light["range"]))
+    cone = spot_falloff(-_dot(to_point_light, light["direction"]), light["cos_inner"], light["cos_outer"])
+    scale = jnp.where(directional, 1.0, attenuation * jnp.where(light["kind"] == SPOT, cone, 1.0))
+
+    n_dot_l = _dot(terms["n"], to_light)
+    lit = (n_dot_l > 0) & (terms["n_dot_v"] > 0)
+    half = tuple(a + b for a, b in zip(terms["v"], to_light))
+    inverse_length = jnp.reciprocal(jnp.sqrt(jnp.maximum(_dot(half, half), 1e-12)))
+    h = tuple(c * inverse_length for c in half)
+    specular = (d_ggx(_dot(terms["n"], h), terms["alpha"]) * _visibility1_ggx(n_dot_l, terms["alpha"])
+                * terms["visibility_v"])
+    v_dot_h = _dot(terms["v"], h)
+    cosine = jnp.maximum(n_dot_l, 0.0)
+    return tuple(jnp.where(lit, d + specular * fresnel_schlick(v_dot_h, f0), 0.0) * (scale * c) * cosine
+                 for d, f0, c in zip(terms["diffuse"], terms["f0"], light["color"]))
+
+
+def _kernel(*refs, n_steps: int, lights_per_step: int):
+    pixel_refs, light_refs, out_refs = refs[:_PIXEL_ARRAYS], refs[_PIXEL_ARRAYS:-3], refs[-3:]
+    column = [r[...][:, None] for r in pixel_refs]  # [B, 1]: broadcast against [1, lights_per_step]
+    point = tuple(column[:3])
+    terms = dict(zip(_TERMS_SCALAR, column[3:6]))
+    for k, name in enumerate(_TERMS_VECTOR):
+        terms[name] = tuple(column[6 + 3 * k:9 + 3 * k])
+
+    def step(i, total):
+        row = [r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in light_refs]  # [1, L]
+        light = dict(zip(_LIGHTS_SCALAR, row[:4]))
+        for k, name in enumerate(_LIGHTS_VECTOR):
+            light[name] = tuple(row[4 + 3 * k:7 + 3 * k])
+        rgb = _radiance(point, terms, light)
+        return tuple(t + jnp.sum(c, axis=1) for t, c in zip(total, rgb))
+
+    zeros = jnp.zeros((pixel_refs[0].shape[0],), jnp.float32)
+    total = jax.lax.fori_loop(0, n_steps, step, (zeros, zeros, zeros))
+    for ref, value in zip(out_refs, total):
+        ref[...] = value
+
+
+def _run_kernel(points, terms: dict, lights: Lights, *, block_pixels: int, lights_per_step: int, interpret: bool):
+    n_points = points.shape[0]
+    padded = -(-n_points // block_pixels) * block_pixels
+    n_steps = -(-lights.count // lights_per_step)
+    lights = pad_lights(lights, count=n_steps * lights_per_step - lights.count)
+    pixel_arrays, light_arrays = _pixel_arrays(points, terms, padded), _light_arrays(lights)
+    pixel_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
+    out = pl.pallas_call(
+        functools.partial(_kernel, n_steps=n_steps, lights_per_step=lights_per_step),
+        out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * 3,
+        grid=(padded // block_pixels,),
+        in_specs=[pixel_spec] * len(pixel_arrays) + [pl.BlockSpec(a.shape, lambda i: (0,)) for a in light_arrays],
+        out_specs=[pixel_spec] * 3,
+        interpret=interpret,
+    )(*pixel_arrays, *light_arrays)
+    return jnp.stack(out, axis=-1)[:n_points]
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5))
+def fused_accumulate_lights(points, terms: dict, lights: Lights, block_pixels: int = BLOCK_PIXELS,
+                            lights_per_step: int = LIGHTS_PER_STEP, interpret: bool = False):
+    """Σ_i brdf · E⊥_i · max(n·l_i, 0) over all N lights, as one kernel over blocks of pixels.
+
+    ``points`` [P, 3] world positions; ``terms``: the points' :func:`gpupro.shading.brdfs.view_terms`
+    (``n``, ``v``, ``f0``, ``diffuse`` [P, 3]; ``n_dot_v``, ``alpha``, ``visibility_v`` [P]);
+    ``lights``: N ≥ 1 lights; ``distribution`` "ggx" or "beckmann"; ``block_pixels``, ``lights_per_step``
+    powers of two; ``interpret``: run in Pallas' interpreter (any backend). Returns radiance [P, 3]
+    (W/(m² sr)), equal to :func:`gpupro.shading.light_loop.accumulate_lights` (GGX, no shadows).
+    Differentiable (reverse mode, through the XLA loop).
+    """
+    return _run_kernel(points, terms, lights, block_pixels=block_pixels, lights_per_step=lights_per_step,
+                       interpret=interpret)
+
+
+def _xla_sum(points, terms, lights):
+    with_light_axis = {k: v[:, None] for k, v in terms.items()}
+    radiance = lambda chunk: light_radiance(points, with_light_axis, chunk, distribution="ggx")
+    return sum_over_lights(radiance, lights, points.shape[0])
+
+
+def _forward(points, terms, lights, block_pixels, lights_per_step, interpret):
+    out = _run_kernel(points, terms, lights, block_pixels=block_pixels, lights_per_step=lights_per_step,
+                      interpret=interpret)
+    return out, (points, terms, lights)
+
+
+def _backward(block_pixels, lights_per_step, interpret, saved, cotangent):
+    _, pullback = jax.vjp(_xla_sum, *saved)
+    return pullback(cotangent)
+
+
+fused_accumulate_lights.defvjp(_forward, _backward)
+
+
+def _reaches(point, light: dict):
+    """:func:`gpupro.shading.light_loop.light_reaches` on component blocks: whether the light's influence
+    truly reaches the point (in range, and strictly inside a spot's outer cone)."""
+    delta = tuple(x - p for x, p in zip(point, light["position"]))
+    distance_sq = _dot(delta, delta)
+    in_range = distance_sq < light["range"] * light["range"]
+    along_axis = _dot(delta, light["direction"])
+    in_cone = (along_axis > 0.0) & (along_axis * along_axis > distance_sq * (light["cos_outer"] * light["cos_outer"]))
+    return (light["kind"] == DIRECTIONAL) | (in_range & ((light["kind"] != SPOT) | in_cone))
+
+
+def _list_kernel(*refs, n_lights: int, capacity: int):
+    pixel_refs = refs[:_PIXEL_ARRAYS]
+    rows_ref, used_ref, slots_ref = refs[_PIXEL_ARRAYS:_PIXEL_ARRAYS + 3]
+    light_refs, out_refs = refs[_PIXEL_ARRAYS + 3:-4], refs[-4:]
+    column = [r[...] for r in pixel_refs]  # [B]
+    point = tuple(column[:3])
+    terms = dict(zip(_TERMS_SCALAR, column[3:6]))
+    for k, name in enumerate(_TERMS_VECTOR):
+        terms[name] = tuple(column[6 + 3 * k:9 + 3 * k])
+    first_slot = rows_ref[...] * capacity  # [B]: where each pixel's list starts in the flattened lists
+
+    def step(j, carry):
+        index = slots_ref[first_slot + j]  # [B] gathered light indices (n_lights: the zero light)
+        row = [r[index] for r in light_refs]
+        light = dict(zip(_LIGHTS_SCALAR, row[:4]))
+        for k, name in enumerate(_LIGHTS_VECTOR):
+            light[name] = tuple(row[4 + 3 * k:7 + 3 * k])
+        rgb = _radiance(point, terms, light)
+        reached = _reaches(point, light) & (index < n_lights)
+        return tuple(t + c for t, c in zip(carry[:3], rgb)) + (carry[3] + reached.astype(jnp.float32),)
+
+    zeros = jnp.zeros((pixel_refs[0].shape[0],), jnp.float32)
+    # The block walks its longest list; shorter lists read the zero light past their end.
+    total = jax.lax.fori_loop(0, jnp.max(used_ref[...]), step, (zeros,) * 4)
+    for ref, value in zip(out_refs, total):
+        ref[...] = value
+
+
+def light_list_sums(points, terms: dict, lights: Lights, lists, rows, *, block_pixels: int = BLOCK_PIXELS,
+                    interpret: bool = False):
+    """Σ over each point's light list of brdf · E⊥ · max(n·l, 0), as one kernel over blocks of points:
+    the fast form of :func:`gpupro.shading.light_loop.accumulate_light_lists` (GGX, no shadows).
+
+    ``points`` [P, 3]; ``terms`` the points' GGX :func:`gpupro.shading.brdfs.view_terms` ([P, 3] and
+    [P]); ``lights`` N lights; ``lists`` int32 [R, C] light indices, −1 in empty slots; ``rows`` int32
+    [P]: the row of ``lists`` each point evaluates. A block of ``block_pixels`` consecutive points loops
+    over its longest list (up to the last filled slot), so neighbouring points should share lists
+    (tiles, clusters). Returns ``(radiance [P, 3] in W/(m² sr), reached [P] float32)``: ``reached``
+    counts the listed lights whose influence truly reaches each point. Not differentiable by itself.
+    """
+    n_points, capacity = points.shape[0], lists.shape[1]
+    padded = -(-n_points // block_pixels) * block_pixels
+    lights = pad_lights(lights, count=1)  # index N: the zero light of empty slots
+    slots = jnp.where(lists < 0, lights.count - 1, lists).astype(jnp.int32)
+    used = jnp.max(jnp.where(lists >= 0, jnp.arange(1, capacity + 1, dtype=jnp.int32), 0), axis=1)
+    pad = lambda x: jnp.pad(x, (0, padded - n_points))
+    rows = pad(jnp.asarray(rows, jnp.int32))
+    pixel_arrays = _pixel_arrays(points, terms, padded) + [rows, pad(used[rows[:n_points]])]
+    light_arrays = _light_arrays(lights)
+    pixel_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
+    whole = lambda a: pl.BlockSpec(a.shape, lambda i: (0,))
+    out = pl.pallas_call(
+        functools.partial(_list_kernel, n_lights=lights.count - 1, capacity=capacity),
+        out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * 4,
+        grid=(padded // block_pixels,),
+        in_specs=[pixel_spec] * len(pixel_arrays) + [whole(slots.reshape(-1))] + [whole(a) for a in light_arrays],
+        out_specs=[pixel_spec] * 4,
+        interpret=interpret,
+    )(*pixel_arrays, slots.reshape(-1), *light_arrays)
+    return jnp.stack(out[:3], axis=-1)[:n_points], out[3][:n_points]
