@@ -134,6 +134,17 @@ def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_c
     return total
 
 
+def _light_loop(light_loop: str, shadow, distribution: str, caller: str) -> str:
+    """``light_loop`` resolved to "scan" or "kernel": "auto" takes the kernel on GPUs where it applies (GGX,
+    no shadow factors); an explicit "kernel" where it does not is an error naming ``caller``."""
+    applies = shadow is None and distribution == "ggx"
+    if light_loop == "auto":
+        return "kernel" if applies and jax.default_backend() == "gpu" else "scan"
+    if light_loop == "kernel" and not applies:
+        raise ValueError(f"{caller}: the light-loop kernel takes GGX and no shadow factors only")
+    return light_loop
+
+
 def accumulate_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, *, shadow=None,
                       distribution: str = "ggx", light_chunk: int | None = None, light_loop: str = "auto"):
     """Σ_i brdf(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i over all N lights, chunked over lights.
@@ -150,12 +161,7 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     shared by deferred and forward shading.
     """
     points = jnp.asarray(points, jnp.float32)
-    if light_loop == "auto":
-        kernel = jax.default_backend() == "gpu" and shadow is None and distribution == "ggx" and lights.count > 0
-        light_loop = "kernel" if kernel else "scan"
-    if light_loop == "kernel" and lights.count > 0:
-        if shadow is not None or distribution != "ggx":
-            raise ValueError("accumulate_lights: the light-loop kernel takes GGX and no shadow factors only")
+    if _light_loop(light_loop, shadow, distribution, "accumulate_lights") == "kernel" and lights.count > 0:
         from gpupro.shading.light_kernel import fused_accumulate_lights  # it builds on this module
 
         terms = view_terms(normals, views, base_color=base_color, roughness=roughness, metallic=metallic,
@@ -221,10 +227,7 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     else:  # −1 picks an appended empty row
         lists = jnp.concatenate([lists, jnp.full((1, capacity), -1, jnp.int32)])
         rows = jnp.where(jnp.asarray(list_of_group) < 0, lists.shape[0] - 1, jnp.asarray(list_of_group, jnp.int32))
-    if light_loop == "auto":
-        light_loop = "kernel" if jax.default_backend() == "gpu" and shadow is None and distribution == "ggx" else "scan"
-    elif light_loop == "kernel" and (shadow is not None or distribution != "ggx"):
-        raise ValueError("accumulate_light_lists: the light-loop kernel takes GGX and no shadow factors only")
+    light_loop = _light_loop(light_loop, shadow, distribution, "accumulate_light_lists")
     return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
 
 
