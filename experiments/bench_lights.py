@@ -56,7 +56,8 @@ def _clustered_stages(inputs, scene, options):
     from gpupro.techniques.lights import clustered
 
     cluster_options = {k: options[k] for k in ("tile", "normal_bins", "bounds", "normal_cones", "cluster_capacity")}
-    assign_options = {k: options[k] for k in ("assignment", "cluster_light_capacity", "tree_branching", "frontier_capacity")}
+    assign_options = {k: options[k] for k in ("assignment", "cluster_light_capacity", "tree_branching", "frontier_capacity",
+                                              "tile", "normal_bins", "grid_capacity")}
 
     def clusters_of(inputs, camera):
         view_position = clustered.to_view(camera, inputs["position"])

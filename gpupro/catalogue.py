@@ -83,7 +83,7 @@ def reference_page(technique: str | Technique) -> str:
     if t.capacities:
         parts += ["", "## Capacities", "", _table(("option", "overflow counter", "on overflow", "doc"),
                   [(f"`{c.option}`", f"`{c.counter}`", "grown and rendered again" if c.lossy else "more steps, nothing lost",
-                    c.doc) for c in t.capacities])]
+                    c.doc + "".join(f"; used when {k} = {_value(v)}" for k, v in c.when)) for c in t.capacities])]
     if t.counters:
         parts += ["", "## Counters", "", _table(("counter", "doc"), [(f"`{c.name}`", c.doc) for c in t.counters])]
     doc = inspect.getdoc(importlib.import_module(t.module))

@@ -146,7 +146,9 @@ class Capacity(typing.NamedTuple):
     frame, and entry points grow the capacity and render again (``needed``, if given, names the counter
     holding the capacity that would have sufficed; otherwise the capacity doubles). A capacity that is
     not lossy only bounds the work per step (the excess takes further steps and nothing is lost): its
-    counter reports that work. ``small``: a value small enough to overflow on the test scenes.
+    counter reports that work. ``small``: a value small enough to overflow on the test scenes. ``when``:
+    (option, value) pairs under which the capacity is used at all (e.g. one assignment method of several);
+    the generic tests set them when they force the capacity small.
     """
 
     option: str
@@ -155,6 +157,7 @@ class Capacity(typing.NamedTuple):
     lossy: bool = True
     needed: str | None = None
     small: int = 1
+    when: tuple = ()
 
 
 class Counter(typing.NamedTuple):
@@ -225,6 +228,8 @@ def _check_spec(t: Technique):
         missing = {c.counter, c.needed} - {None} - counter_names
         if missing:
             raise ValueError(f"{where}: capacity {c.option!r} names undeclared counters {sorted(missing)}")
+        if any(name not in option_names for name, _ in c.when):
+            raise ValueError(f"{where}: capacity {c.option!r} is used when {dict(c.when)}, not all of them options")
         if c.lossy and not _is_int(t.option(c.option).default):
             raise ValueError(f"{where}: lossy capacity {c.option!r} needs an integer default to grow from")
     if not t.outputs:

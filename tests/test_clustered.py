@@ -19,9 +19,10 @@ from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_sam
 
 TILE = 16
 STATIC = ("distribution", "light_chunk", "tile", "normal_bins", "bounds", "normal_cones", "assignment",
-          "cluster_capacity", "cluster_light_capacity", "tree_branching", "frontier_capacity")
+          "cluster_capacity", "cluster_light_capacity", "tree_branching", "frontier_capacity", "grid_capacity")
 DEFAULTS = dict(tile=TILE, normal_bins=0, bounds="implicit", normal_cones="none", assignment="tree",
-                cluster_capacity=512, cluster_light_capacity=128, tree_branching=4, frontier_capacity=4096)
+                cluster_capacity=512, cluster_light_capacity=128, tree_branching=4, frontier_capacity=4096,
+                grid_capacity=1 << 15)
 VARIANTS = {"implicit": {}, "explicit_sample_cones": dict(bounds="explicit", normal_cones="samples"),
             "normal_bins_key_cones": dict(normal_bins=3, normal_cones="key")}
 
@@ -38,13 +39,14 @@ def lists_of(lights, **options):
 
 
 def _build_and_assign(lights, *, tile, normal_bins, bounds, normal_cones, assignment, cluster_capacity,
-                      cluster_light_capacity, tree_branching, frontier_capacity):
+                      cluster_light_capacity, tree_branching, frontier_capacity, grid_capacity):
     clusters, pixel_cluster = build_clusters(VIEW_POSITION, VIEW_NORMAL, GBUFFER["coverage"], CAMERA, tile=tile,
                                              normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
                                              cluster_capacity=cluster_capacity)
     lists, counts, stats = assign_lights(lights, CAMERA, clusters, assignment=assignment,
                                          cluster_light_capacity=cluster_light_capacity,
-                                         tree_branching=tree_branching, frontier_capacity=frontier_capacity)
+                                         tree_branching=tree_branching, frontier_capacity=frontier_capacity,
+                                         tile=tile, normal_bins=normal_bins, grid_capacity=grid_capacity)
     return clusters, pixel_cluster, lists, counts, stats
 
 
@@ -122,6 +124,34 @@ def assert_tree_lists_are_brute_force_lists(lights, **options):
 @pytest.mark.parametrize("variant", ["implicit", "normal_bins_key_cones"])  # explicit bounds: the 10,000 test
 def test_tree_assignment_gives_the_brute_force_lists(variant):
     assert_tree_lists_are_brute_force_lists(LIGHTS["hundred"], **VARIANTS[variant])
+
+
+def test_grid_assignment_lists_every_reaching_light_and_only_brute_force_lights():
+    """Grid candidates come from the cells of each light's bounding sphere, so its lists may be shorter
+    than brute force's (a sub-frustum's AABB overlaps lights its cell does not), but they hold every
+    light that reaches a sample of the cluster, and the image is brute force's. (Candidates come from
+    the keys alone, so the bounds mode does not matter to them.)"""
+    lights, options = LIGHTS["hundred"], dict(assignment="grid")
+    _, pixel_cluster, lists, counts, stats = lists_of(lights, **options)
+    *_, brute_lists, brute_counts, _ = lists_of(lights, assignment="brute_force")
+    assert int(stats["grid_overflow"]) == 0 and int(stats["grid_candidates"]) > 0
+    lists, brute_lists, pixel_cluster = np.asarray(lists), np.asarray(brute_lists), np.asarray(pixel_cluster)
+    assert int(np.max(np.asarray(brute_counts))) <= brute_lists.shape[1]
+    for row, brute_row in zip(lists, brute_lists):
+        assert set(row[row >= 0]) <= set(brute_row[brute_row >= 0])
+    reaches = np.asarray(light_reaches(lights, jnp.asarray(GBUFFER["position"]).reshape(-1, 3)))
+    for pixel in np.flatnonzero(COVERED.reshape(-1) & (pixel_cluster >= 0)):
+        listed = set(lists[pixel_cluster[pixel]])
+        assert set(np.flatnonzero(reaches[pixel])) <= listed, pixel
+    assert np.sum(lists >= 0) < np.sum(brute_lists >= 0), "cells are tighter than sub-frustum boxes"
+    fast, slow, counters, slow_counters = shade_both(lights, **options)
+    assert_same(fast, slow)
+    assert int(counters["grid_overflow"]) == 0
+
+
+def test_grid_assignment_needs_position_only_keys():
+    with pytest.raises(ValueError, match="normal_bins = 0"):
+        lists_of(LIGHTS["hundred"], normal_bins=3, assignment="grid")
 
 
 def test_depth_slices_follow_eq_2_with_a_floor_and_hold_their_samples():

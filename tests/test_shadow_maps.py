@@ -229,13 +229,18 @@ def test_counters_and_layout(setup):
     assert np.all(depths[2, 3] < 1.0) and np.all(depths[2, 2] == 1.0)  # floor fills -y; nothing above the light
 
 
-def test_jit_matches_eager(setup, evaluation):
+@pytest.mark.slow  # the rasterizer's own uncompiled run is checked in test_raster; this one takes most of a minute
+def test_jit_matches_eager_build(setup):
     mesh, lights, camera, maps = setup
     jitted = jax.jit(build_shadow_maps, static_argnames=("count", "resolution"))(lights, mesh, camera, count=2, resolution=8)
     with jax.disable_jit():  # build_shadow_maps compiles its own body: this is the only uncompiled run
         eager_maps = build_shadow_maps(lights, mesh, camera, count=2, resolution=8)
     np.testing.assert_allclose(np.asarray(jitted.depths), np.asarray(eager_maps.depths), rtol=0, atol=1e-6)
     assert (np.asarray(eager_maps.depths) < 1).any()
+
+
+def test_jit_matches_eager_lookup(setup, evaluation):
+    mesh, lights, camera, maps = setup
     e = evaluation[2]
     points, normals = e["points"][::8], e["normals"][::8]
     with jax.disable_jit():

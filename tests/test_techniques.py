@@ -4,15 +4,15 @@
 - its specification is complete and its pass function takes its options keyword-only, with no defaults
   of its own (the defaults live in the specification only);
 - every declared continuous parameter passes ``check_grads``;
-- jitted and un-jitted (``jax.disable_jit()``) frames agree;
+- jitted and un-jitted (called op by op, as in a notebook) frames agree;
 - a technique with a ``reference`` agrees with it on the shared scenes;
 - every capacity, forced small, reports its overflow, and the frame still equals the reference (the
   entry points grow lossy capacities and render again);
 - its reference page lists every option and parameter.
 
 The heavier of these (gradients, jit against eager, reference, capacities) are marked ``slow`` for the
-families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget; ``pytest -m slow
-tests/test_techniques.py`` runs them.
+families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget, and the capacity and gradient
+cases of the :data:`TWINS`; ``pytest -m slow tests/test_techniques.py`` runs them.
 """
 
 import dataclasses
@@ -53,13 +53,17 @@ SCENES = _scenes()
 SLOW_FAMILIES = {"media"}
 """Families whose heavy generic cases run only with ``-m slow`` (ray marches compile slowly on the CPU)."""
 
+TWINS = {t.id for t in TECHNIQUES.values() if any(getattr(t.apply, "__wrapped__", None) is o.apply for o in TECHNIQUES.values())}
+"""Techniques whose pass wraps another's (the forward twins of :func:`gpupro.techniques.lights.forward.forward_of`):
+their capacities and gradients are the wrapped pass's, so those cases run with ``-m slow`` only."""
 
-def _cases(cases):
+
+def _cases(cases, *, slow=frozenset()):
     """``cases`` (technique ids, or tuples starting with one) with the ``slow`` mark on those of
-    :data:`SLOW_FAMILIES`."""
+    :data:`SLOW_FAMILIES` and of ``slow``."""
     first = lambda case: case[0] if isinstance(case, tuple) else case
     return [pytest.param(*(case if isinstance(case, tuple) else (case,)), marks=pytest.mark.slow)
-            if TECHNIQUES[first(case)].family in SLOW_FAMILIES else case for case in cases]
+            if TECHNIQUES[first(case)].family in SLOW_FAMILIES or first(case) in slow else case for case in cases]
 
 
 def _example(technique_id, outputs=None, **options):
@@ -148,7 +152,7 @@ def _agree(analytic, numeric, rtol=0.05):
     return abs(analytic - numeric) <= rtol * max(abs(analytic), abs(numeric), 1e-3)
 
 
-@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED))
+@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED, slow=TWINS))
 def test_parameters_and_light_values_have_correct_gradients(technique_id):
     """One reverse-mode gradient per technique, against central differences: along a random direction
     in each declared continuous parameter (moved away from zero, where tone curves and clamps have
@@ -194,8 +198,7 @@ def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id
     inputs = pipeline(params, scene, outputs=wired) if wired else {}  # upstream passes run compiled
     run = lambda buffers: technique_pass.run(params.get(technique_id), buffers, scene)[:2]
     jitted, counters = jax.jit(run)(inputs)
-    with jax.disable_jit():
-        eager, _ = run(inputs)
+    eager, _ = run(inputs)  # op by op, as a notebook calls it (disable_jit would unroll every scan in Python)
     _assert_same(jitted, eager, technique_pass.outputs)
     missing = {c.name for c in TECHNIQUES[technique_id].counters} - set(counters)
     assert not missing, f"declared counters {sorted(missing)} are not reported"
@@ -216,11 +219,11 @@ def test_technique_equals_its_reference(technique_id, scene):
 CAPACITIES = [(t.id, c) for t in TECHNIQUES.values() for c in t.capacities]
 
 
-@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
+@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]
-    small = _example(technique_id, **{capacity.option: capacity.small})
+    small = _example(technique_id, **dict(capacity.when), **{capacity.option: capacity.small})
     expected_pipeline = _example(t.reference or technique_id)
     expected = expected_pipeline(expected_pipeline.init_params(), scene)
     frame = small(small.init_params(), scene)

@@ -38,9 +38,19 @@ space (camera at the origin looking down −z, view depth d = −z):
    ``assignment = "brute_force"`` tests every (cluster, light) pair; ``"tree"`` finds the same pairs
    through the per-frame light tree of :mod:`gpupro.techniques.lights.light_tree` (Morton-sorted
    lights, B = ``tree_branching`` children per node, level-by-level frontier of ``frontier_capacity``
-   pairs), as Paper II does; ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots ×
-   lights and the tree beyond (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in
-   0.87 ms, the tree in 5.37 ms; docs/benchmarks.md). Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
+   pairs), as Paper II does; ``"grid"`` (position-only keys, not in Paper II) bins each light into the
+   cells it may reach instead of searching for it: the tiles of its bounding sphere's conservative screen
+   rectangle (:func:`gpupro.techniques.lights.tiled.screen_bounds`, widened by half a pixel) × the slices
+   k(d_c − R) − 1 … k(d_c + R) + 1 of its view-depth extent (k the function that keyed the samples, so
+   every sample inside the sphere has a key in that box), clipped to the occupied slices; the box's cells are enumerated (count → scan →
+   fill into ``grid_capacity`` candidates, lossy, grown by the entry points), looked up among the
+   occupied keys (binary search) and the occupied ones decided by the same leaf test. Any light reaching
+   a sample of a cluster is therefore listed; lights that only meet the AABB of the cluster's
+   sub-frustum outside the cell are not, so grid lists can be shorter than brute force's and the image is
+   the same. ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots × lights and the
+   tree beyond (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree
+   in 5.37 ms; at 1,048,576 lights the grid's 38 M candidates took longer than the tree: docs/benchmarks.md).
+   Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
    ascending light indices; the excess is dropped and counted (``cluster_list_overflow``; grown to
    ``max_lights_per_cluster``).
 5. Shading: each pixel evaluates the list of its cluster with the per-light arithmetic of brute force
@@ -53,7 +63,8 @@ space (camera at the origin looking down −z, view depth d = −z):
 Counters: those of ``tiled_deferred`` over clusters (``lighting_computations`` Σ_covered |list|,
 ``exact_lighting_computations`` Σ_covered of listed lights that reach the pixel, ``false_positive_rate``,
 ``light_list_bytes``), per-stage work (``clusters`` found, ``cluster_light_tests`` (cluster, light) pairs
-decided, ``tree_nodes_tested``, ``lights_backface_culled``) and each capacity's overflow and need.
+decided, ``tree_nodes_tested``, ``lights_backface_culled``, ``grid_candidates``) and each capacity's
+overflow and need.
 """
 
 from __future__ import annotations
@@ -72,7 +83,7 @@ from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.lights.light_tree import build_light_tree, traverse
-from gpupro.techniques.lights.tiled import TILED_COUNTERS, fill_light_lists, from_tiles, tile_grid, to_tiles
+from gpupro.techniques.lights.tiled import TILED_COUNTERS, fill_light_lists, from_tiles, screen_bounds, tile_grid, to_tiles
 from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
 
@@ -179,6 +190,12 @@ def bin_cones(bin_index, *, bins: int):
     return axis, jnp.arccos(jnp.clip(cos_min, -1.0, 1.0)) + CONE_MARGIN
 
 
+def last_slice(cells_per_slice: int) -> int:
+    """The largest depth slice whose packed keys (``cells_per_slice`` tiles × normal bins each) fit below
+    :data:`NO_KEY` (Python int); deeper samples are clamped to it."""
+    return (2**31 - 2) // cells_per_slice - 1
+
+
 def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int):
     """Packed int32 keys [H, W] (module docstring, step 1) of covered samples, :data:`NO_KEY` elsewhere.
     ``view_position``, ``view_normal`` [H, W, 3] view space; ``coverage`` [H, W]; static ``tile`` pixels,
@@ -186,7 +203,7 @@ def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: 
     height, width = jnp.shape(coverage)
     tiles_y, tiles_x = tile_grid((height, width), tile=tile)
     n_bins = 6 * normal_bins * normal_bins if normal_bins else 1
-    last = (2**31 - 2) // (tiles_y * tiles_x * n_bins) - 1
+    last = last_slice(tiles_y * tiles_x * n_bins)
     k = depth_slices(-view_position[..., 2], camera, tiles_y=tiles_y, last=last)
     bins = normal_bins_of(view_normal, bins=normal_bins) if normal_bins else 0
     rows = jnp.arange(height, dtype=jnp.int32)[:, None] // tile
@@ -327,17 +344,21 @@ def pair_tests(clusters: Clusters, lights_view: Lights, leaf_lower, leaf_upper, 
     return meets & ~behind, meets & behind
 
 
-def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int):
+def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int, light_ordered: bool = False):
     """Count → scan → fill of K (cluster, light) pairs where ``hit`` into int32 [clusters, capacity]
-    lists (ascending light indices, −1 in empty slots) and the int32 [clusters] counts before truncation."""
+    lists (ascending light indices, −1 in empty slots) and the int32 [clusters] counts before truncation.
+    ``light_ordered``: the pairs come in ascending light order, so a stable sort on the cluster alone
+    keeps each list ascending (a one-key sort, which GPUs run as a radix sort)."""
     cluster = jnp.where(hit, cluster, clusters)
-    cluster, light = jax.lax.sort((cluster, light), num_keys=2)
-    counts = jax.ops.segment_sum(jnp.ones_like(cluster), cluster, num_segments=clusters + 1)
-    starts = jnp.cumsum(counts) - counts
-    slot = jnp.arange(cluster.shape[0], dtype=jnp.int32) - starts[cluster]
+    cluster, light = jax.lax.sort((cluster, light), num_keys=1 if light_ordered else 2, is_stable=light_ordered)
+    # Each cluster's run in the sorted pairs by binary search, not by a segment sum: the misses all
+    # share one segment, whose atomic adds would serialise on a GPU.
+    bounds = jnp.searchsorted(cluster, jnp.arange(clusters + 1, dtype=jnp.int32)).astype(jnp.int32)
+    starts, counts = bounds[:-1], bounds[1:] - bounds[:-1]
+    slot = jnp.arange(cluster.shape[0], dtype=jnp.int32) - starts[jnp.minimum(cluster, clusters - 1)]
     slot = jnp.where(cluster < clusters, slot, capacity)
     lists = jnp.full((clusters, capacity), -1, jnp.int32).at[cluster, slot].set(light, mode="drop")
-    return lists, counts[:clusters].astype(jnp.int32)
+    return lists, counts
 
 
 BRUTE_FORCE_PAIRS = 1 << 25
@@ -345,23 +366,80 @@ BRUTE_FORCE_PAIRS = 1 << 25
 of that many int32 is 128 MiB)."""
 
 
-def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignment: str,
-                  cluster_light_capacity: int, tree_branching: int, frontier_capacity: int):
-    """Step 4: per-cluster light lists, by brute force or through the light tree (the same lists).
+def grid_candidates(lights: Lights, camera: Camera, clusters: Clusters, *, tile: int, grid_capacity: int):
+    """(cluster, light) candidates of grid assignment (module docstring, step 4): every occupied cluster
+    whose (tile, slice) cell lies in a light's cell box. Position-only keys (``normal_bins`` = 0).
 
-    ``lights`` N lights (world space); ``camera`` gives the view transform; ``clusters`` C slots;
-    static: ``assignment`` ("tree", "brute_force" or "auto"), ``cluster_light_capacity``, ``tree_branching``,
-    ``frontier_capacity``. Returns ``(lists int32 [C, L], counts int32 [C], counters)``, L =
+    ``lights`` N lights (world space); ``clusters`` C slots with position-only keys; static ``tile`` and
+    ``grid_capacity`` (candidate slots). Returns ``(cluster int32 [K], light int32 [K], valid bool [K],
+    total int32)``, K = ``grid_capacity``: the candidates in light order, ``valid`` where a slot holds one
+    whose cell is an occupied cluster; ``total`` all candidate cells (occupied or not), also those past K.
+    """
+    shape = camera.resolution
+    tiles_y, tiles_x = tile_grid(shape, tile=tile)
+    centre, radius = light_spheres(lights)
+    rect, depth = screen_bounds(centre, radius, camera)
+    # Tiles whose pixel squares meet the widened rectangle, slices of the depth extent widened by one on
+    # each side (depth_slices is the function that keyed the samples, so the cells hold every sample
+    # inside the light's bounding sphere).
+    first_col = jnp.floor((rect[:, 0] - 0.5) / tile)
+    last_col = jnp.floor((rect[:, 1] + 0.5) / tile)
+    first_row = jnp.floor((rect[:, 2] - 0.5) / tile)
+    last_row = jnp.floor((rect[:, 3] + 0.5) / tile)
+    clamp = lambda v, n: jnp.clip(jnp.nan_to_num(v, posinf=n - 1, neginf=0), 0, n - 1).astype(jnp.int32)
+    x0, x1 = clamp(first_col, tiles_x), clamp(last_col, tiles_x)
+    y0, y1 = clamp(first_row, tiles_y), clamp(last_row, tiles_y)
+    # Only slices between the nearest and the farthest occupied one can hold a cluster (keys ascend).
+    occupied_first = clusters.keys[0] // (tiles_y * tiles_x)
+    occupied_last = jnp.max(jnp.where(clusters.valid, clusters.keys, 0)) // (tiles_y * tiles_x)
+    slices = lambda d: depth_slices(d, camera, tiles_y=tiles_y, last=last_slice(tiles_y * tiles_x))
+    k0 = jnp.maximum(slices(jnp.nan_to_num(depth[:, 0], neginf=0.0)) - 1, occupied_first)
+    k1 = jnp.minimum(slices(jnp.nan_to_num(depth[:, 1], posinf=3e38)) + 1, occupied_last)
+    seen = (rect[:, 1] >= rect[:, 0]) & (rect[:, 3] >= rect[:, 2]) & (rect[:, 1] > -1.0) & (rect[:, 0] < shape[1] + 1.0) \
+        & (rect[:, 3] > -1.0) & (rect[:, 2] < shape[0] + 1.0) & (k1 >= k0)
+    nx, ny, nz = x1 - x0 + 1, y1 - y0 + 1, jnp.maximum(k1 - k0 + 1, 1)
+    cells = jnp.where(seen, nx * ny * nz, 0)
+    ends = jnp.cumsum(cells)
+    starts = ends - cells
+    total = jnp.minimum(jnp.sum(cells.astype(jnp.float32)), 2.0**31 - 1).astype(jnp.int32)
+    # Slot → light: each light's index at its first slot, carried forward by a running maximum.
+    owner = jnp.zeros((grid_capacity,), jnp.int32).at[starts].max(jnp.arange(lights.count, dtype=jnp.int32),
+                                                                  mode="drop")
+    light = jax.lax.cummax(owner)
+    local = jnp.arange(grid_capacity, dtype=jnp.int32) - starts[light]
+    dz, rest = local % nz[light], local // nz[light]
+    dx, dy = rest % nx[light], rest // nx[light]
+    key = ((k0[light] + dz) * tiles_y + y0[light] + dy) * tiles_x + x0[light] + dx
+    cluster = jnp.clip(jnp.searchsorted(clusters.keys, key), 0, clusters.keys.shape[0] - 1).astype(jnp.int32)
+    valid = (jnp.arange(grid_capacity) < ends[-1]) & (clusters.keys[cluster] == key) & clusters.valid[cluster]
+    return cluster, light, valid, total
+
+
+def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignment: str,
+                  cluster_light_capacity: int, tree_branching: int, frontier_capacity: int, tile: int,
+                  normal_bins: int, grid_capacity: int):
+    """Step 4: per-cluster light lists, by brute force, through the light tree or by grid binning (the
+    same lists).
+
+    ``lights`` N lights (world space); ``camera`` gives the view transform, projection and resolution;
+    ``clusters`` C slots; static: ``assignment`` ("auto", "brute_force", "tree" or "grid"),
+    ``cluster_light_capacity``, ``tree_branching``, ``frontier_capacity``, ``tile``, ``normal_bins`` (the
+    keys' layout) and ``grid_capacity``. Returns ``(lists int32 [C, L], counts int32 [C], counters)``, L =
     min(cluster_light_capacity, N), counts before truncation; counters ``cluster_light_tests``,
-    ``tree_nodes_tested``, ``lights_backface_culled``, ``frontier_overflow``, ``max_frontier``.
+    ``tree_nodes_tested``, ``lights_backface_culled``, ``frontier_overflow``, ``max_frontier``,
+    ``grid_overflow``, ``grid_candidates``.
     """
     n_clusters, n_lights = clusters.valid.shape[0], lights.count
     capacity = min(cluster_light_capacity, n_lights)
     zero = jnp.int32(0)
+    stats = dict(tree_nodes_tested=zero, frontier_overflow=zero, max_frontier=zero, grid_overflow=zero,
+                 grid_candidates=zero)
     if n_lights == 0:
         return (jnp.zeros((n_clusters, 0), jnp.int32), jnp.zeros((n_clusters,), jnp.int32),
-                dict(cluster_light_tests=zero, tree_nodes_tested=zero, lights_backface_culled=zero,
-                     frontier_overflow=zero, max_frontier=zero))
+                dict(stats, cluster_light_tests=zero, lights_backface_culled=zero))
+    if assignment == "grid" and normal_bins:
+        raise ValueError("clustered shading: assignment = 'grid' needs normal_bins = 0 (it bins lights by "
+                         "tile and depth slice)")
     lights_view = transform_lights(lights, camera.view_matrix())
     leaf_lower, leaf_upper, centre = light_leaf_boxes(lights_view)
     tests = lambda c, l: pair_tests(clusters, lights_view, leaf_lower, leaf_upper, c, l)
@@ -372,8 +450,14 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
         light = jnp.tile(jnp.arange(n_lights, dtype=jnp.int32), n_clusters)
         hit, culled = tests(cluster, light)
         lists, counts = fill_light_lists(hit.reshape(n_clusters, n_lights), capacity)
-        stats = dict(cluster_light_tests=jnp.sum(clusters.valid, dtype=jnp.int32) * n_lights,
-                     tree_nodes_tested=zero, frontier_overflow=zero, max_frontier=zero)
+        stats["cluster_light_tests"] = jnp.sum(clusters.valid, dtype=jnp.int32) * n_lights
+    elif assignment == "grid":
+        cluster, light, valid, total = grid_candidates(lights, camera, clusters, tile=tile, grid_capacity=grid_capacity)
+        hit, culled = tests(cluster, light)
+        hit, culled = hit & valid, culled & valid
+        lists, counts = fill_pair_lists(cluster, light, hit, clusters=n_clusters, capacity=capacity, light_ordered=True)
+        stats.update(cluster_light_tests=jnp.sum(valid, dtype=jnp.int32), grid_candidates=total,
+                     grid_overflow=jnp.maximum(total - grid_capacity, 0))
     else:
         tree = build_light_tree(leaf_lower, leaf_upper, centre, branching=tree_branching)
         found = {}
@@ -382,11 +466,12 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
             hit, found["culled"] = tests(c, l)
             return hit
 
-        cluster, light, hit, stats = traverse(tree, clusters.lower, clusters.upper, clusters.valid, leaf_test,
-                                              frontier_capacity=frontier_capacity)
+        cluster, light, hit, found_stats = traverse(tree, clusters.lower, clusters.upper, clusters.valid, leaf_test,
+                                                    frontier_capacity=frontier_capacity)
         culled = found["culled"] & (light >= 0)
         lists, counts = fill_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters, capacity=capacity)
-        stats["cluster_light_tests"] = stats.pop("lights_tested")
+        found_stats["cluster_light_tests"] = found_stats.pop("lights_tested")
+        stats.update(found_stats)
     stats["lights_backface_culled"] = jnp.sum(culled, dtype=jnp.int32)
     return lists, counts, stats
 
@@ -427,7 +512,7 @@ def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, cam
 def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                     distribution: str, light_chunk: int | None, tile: int, normal_bins: int, bounds: str,
                     normal_cones: str, assignment: str, cluster_capacity: int, cluster_light_capacity: int,
-                    tree_branching: int, frontier_capacity: int):
+                    tree_branching: int, frontier_capacity: int, grid_capacity: int):
     """Clustered shading of per-pixel surfaces (steps 1–5 of the module docstring).
 
     ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
@@ -444,7 +529,8 @@ def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, b
                                              cluster_capacity=cluster_capacity)
     lists, counts, stats = assign_lights(lights, camera, clusters, assignment=assignment,
                                          cluster_light_capacity=cluster_light_capacity,
-                                         tree_branching=tree_branching, frontier_capacity=frontier_capacity)
+                                         tree_branching=tree_branching, frontier_capacity=frontier_capacity,
+                                         tile=tile, normal_bins=normal_bins, grid_capacity=grid_capacity)
     hdr, reached = shade_cluster_lists(surface, lists, pixel_cluster, lights, camera, ambient=ambient,
                                        background=background, shadow=shadow, distribution=distribution,
                                        light_chunk=light_chunk)
@@ -472,12 +558,13 @@ def _shade(params, surface, scene, shadow, options):
 
 
 def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, normal_bins, bounds, normal_cones,
-                   assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity):
+                   assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity,
+                   grid_capacity):
     """Clustered deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     options = dict(distribution=distribution, light_chunk=light_chunk, tile=tile, normal_bins=normal_bins,
                    bounds=bounds, normal_cones=normal_cones, assignment=assignment, cluster_capacity=cluster_capacity,
                    cluster_light_capacity=cluster_light_capacity, tree_branching=tree_branching,
-                   frontier_capacity=frontier_capacity)
+                   frontier_capacity=frontier_capacity, grid_capacity=grid_capacity)
     hdr, counters = _shade(params, {key: inputs[key] for key in DEFERRED_INPUTS}, scene, inputs.get("shadow"), options)
     return {"hdr": hdr}, counters
 
@@ -491,13 +578,14 @@ CLUSTERED_OPTIONS = SHADING_OPTIONS + (
     Option("bounds", "implicit", one_of("implicit", "explicit"), "cluster AABBs from the key's sub-frustum, or the min/max of the samples"),
     Option("normal_cones", "none", one_of("none", "key", "samples"),
            "back-face cull lights with each cluster's normal cone: none, from the key's normal bin, or from the samples' normals"),
-    Option("assignment", "auto", one_of("auto", "tree", "brute_force"),
-           "light assignment: through the light tree, every cluster × light pair, or auto (brute force up to "
-           "2^25 pairs, the tree beyond)"),
+    Option("assignment", "auto", one_of("auto", "tree", "brute_force", "grid"),
+           "light assignment: through the light tree, every cluster × light pair, by binning each light into its "
+           "(tile, slice) cells (position-only keys), or auto (brute force up to 2^25 pairs, the tree beyond)"),
     Option("cluster_capacity", 1024, integer(1), "occupied clusters kept (grown by the entry points on overflow)"),
     Option("cluster_light_capacity", 128, integer(1), "light slots per cluster list (grown by the entry points on overflow)"),
     Option("tree_branching", 32, integer(2), "children per light-tree node (32 as in the paper)"),
     Option("frontier_capacity", 16384, integer(1), "(cluster, node) pairs kept per tree level (grown by the entry points on overflow)"),
+    Option("grid_capacity", 1 << 20, integer(1), "(cell, light) candidates of grid assignment (grown by the entry points on overflow)"),
 )
 CLUSTERED_CAPACITIES = (
     Capacity("cluster_capacity", "cluster_overflow", "occupied clusters; the samples of the excess get no lights",
@@ -505,7 +593,9 @@ CLUSTERED_CAPACITIES = (
     Capacity("cluster_light_capacity", "cluster_list_overflow", "lights listed per cluster; the excess is dropped",
              needed="max_lights_per_cluster"),
     Capacity("frontier_capacity", "frontier_overflow", "(cluster, tree node) pairs per traversal level; the excess "
-             "is dropped with its lights", needed="max_frontier"),
+             "is dropped with its lights", needed="max_frontier", when=(("assignment", "tree"),)),
+    Capacity("grid_capacity", "grid_overflow", "(tile, slice) cells × light candidates of grid assignment; the excess "
+             "is dropped", needed="grid_candidates", when=(("assignment", "grid"),)),
 )
 CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
     Counter("light_list_bytes", "bytes of the per-cluster light index lists (4 × cluster slots × list slots)"),
@@ -518,6 +608,8 @@ CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
     Counter("lights_backface_culled", "(cluster, light) pairs whose bounds meet but whose light faces away from every normal of the cone"),
     Counter("frontier_overflow", "(cluster, node) pairs dropped from full traversal frontiers"),
     Counter("max_frontier", "the largest traversal frontier before truncation"),
+    Counter("grid_overflow", "grid-assignment candidates dropped past grid_capacity"),
+    Counter("grid_candidates", "(tile, slice) cell × light candidates of grid assignment (0 otherwise), occupied or not"),
 ) + SHADING_COUNTERS[1:]
 CLUSTERED_NOTES = ("Missing from Paper II: the tile-local sort and the page tables (Pt) for finding unique clusters "
                    "(here one global sort and compaction, Fig. 5), the packed light-index list (here a padded [C, L] "

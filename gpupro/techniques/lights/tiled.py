@@ -57,8 +57,14 @@ def screen_bounds(centre, radius, camera: Camera):
 
     ``centre`` [N, 3], ``radius`` [N] (world units; ``inf`` covers everything). Returns ``(rect [N, 4],
     depth [N, 2])``: rect = (x_min, x_max, y_min, y_max) in pixels (x right from the left edge, y down
-    from the top; ±inf for the whole screen, an empty rectangle behind the eye); depth = (d_c − R,
-    d_c + R) in world units along the viewing axis.
+    from the top; ±inf for the whole screen, an empty rectangle for spheres wholly nearer than the near
+    plane); depth = (d_c − R, d_c + R) in world units along the viewing axis.
+
+    The rectangle bounds the projections of the 8 corners of the sphere's view-space bounding cube. With
+    a perspective camera the cube is first cut at the near plane (its corners' depths clamped to ≥ near):
+    no sample lies nearer, and the cut cube, wholly in front of the eye, projects inside its corners'
+    rectangle. So a sphere holding the eye or crossing the near plane gets the rectangle of its part
+    beyond the near plane, not the whole screen.
     """
     height, width = camera.resolution
     view = camera.view_matrix()
@@ -67,15 +73,16 @@ def screen_bounds(centre, radius, camera: Camera):
     signs = jnp.array([[sx, sy, sz] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0) for sz in (-1.0, 1.0)], jnp.float32)
     finite_radius = jnp.where(jnp.isfinite(radius), radius, 0.0)
     corners = centre_view[:, None, :] + finite_radius[:, None, None] * signs  # [N, 8, 3]
+    if camera.projection == "perspective":
+        corners = corners.at[..., 2].min(-camera.near)
     homogeneous = jnp.concatenate([corners, jnp.ones_like(corners[..., :1])], axis=-1)
     clip = einsum("ij,nkj->nki", camera.projection_matrix(), homogeneous)
     ndc = clip[..., :2] / clip[..., 3:]
     x, y = (ndc[..., 0] + 1.0) * (0.5 * width), (1.0 - ndc[..., 1]) * (0.5 * height)
     rect = jnp.stack([x.min(1), x.max(1), y.min(1), y.max(1)], axis=1)
     everywhere = ~jnp.isfinite(radius)
-    if camera.projection == "perspective":
-        everywhere = everywhere | (depth - radius < camera.near)
-    behind = jnp.isfinite(radius) & (depth + radius <= 0.0)
+    nearest = camera.near if camera.projection == "perspective" else 0.0
+    behind = jnp.isfinite(radius) & (depth + radius < nearest)
     inf = jnp.float32(jnp.inf)
     rect = jnp.where(everywhere[:, None], jnp.array([-inf, inf, -inf, inf]), rect)
     rect = jnp.where(behind[:, None], jnp.array([inf, -inf, inf, -inf]), rect)
