@@ -361,6 +361,21 @@ def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int, light_
     return lists, counts
 
 
+def fill_grouped_pair_lists(cluster, light, hit, *, clusters: int, capacity: int):
+    """:func:`fill_pair_lists` for pairs whose hits already come grouped by ascending cluster (the light
+    tree's traversal emits them so), without the sort: each hit's slot is its rank among the hits less
+    the hits of earlier clusters, and each list is then sorted to ascending light indices (on overflow
+    the lights kept are the first in traversal order)."""
+    rank = jnp.cumsum(hit, dtype=jnp.int32) - 1
+    # Misses get an out-of-range segment and are dropped, so no segment collects them all.
+    counts = jax.ops.segment_sum(hit.astype(jnp.int32), jnp.where(hit, cluster, clusters), num_segments=clusters)
+    before = jnp.cumsum(counts) - counts
+    slot = jnp.where(hit, rank - before[jnp.clip(cluster, 0, clusters - 1)], capacity)
+    lists = jnp.full((clusters, capacity), NO_KEY, jnp.int32).at[cluster, slot].set(light, mode="drop")
+    lists = jnp.sort(lists, axis=1)
+    return jnp.where(lists == NO_KEY, -1, lists), counts
+
+
 BRUTE_FORCE_PAIRS = 1 << 25
 """Largest (cluster slot, light) count that ``assignment = "auto"`` tests by brute force (each pair array
 of that many int32 is 128 MiB)."""
@@ -469,7 +484,8 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
         cluster, light, hit, found_stats = traverse(tree, clusters.lower, clusters.upper, clusters.valid, leaf_test,
                                                     frontier_capacity=frontier_capacity)
         culled = found["culled"] & (light >= 0)
-        lists, counts = fill_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters, capacity=capacity)
+        lists, counts = fill_grouped_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters,
+                                                capacity=capacity)
         found_stats["cluster_light_tests"] = found_stats.pop("lights_tested")
         stats.update(found_stats)
     stats["lights_backface_culled"] = jnp.sum(culled, dtype=jnp.int32)

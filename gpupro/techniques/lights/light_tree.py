@@ -108,7 +108,8 @@ def traverse(tree: LightTree, lower, upper, valid, leaf_test, *, frontier_capaci
 
     ``lower``, ``upper`` [Q, 3] query boxes; ``valid`` bool [Q]; ``leaf_test(query int32 [K], light int32
     [K]) → bool [K]`` the exact pair test; ``frontier_capacity`` (static) pairs kept per inner level.
-    Returns ``(query int32 [K], light int32 [K], hit bool [K], stats)``; stats: ``tree_nodes_tested``
+    Returns ``(query int32 [K], light int32 [K], hit bool [K], stats)``, the hits ordered by query, then
+    leaf slot (expansion and compaction keep the frontier's order); stats: ``tree_nodes_tested``
     (inner-node box tests), ``lights_tested`` (leaf tests), ``frontier_overflow`` (pairs dropped),
     ``max_frontier`` (the largest frontier, the capacity that would have sufficed).
     """
