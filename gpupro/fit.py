@@ -240,18 +240,22 @@ def check_grads(pipeline: Pipeline, params, scene, *, paths: list[str] | None = 
     key = jax.random.PRNGKey(seed)
     probe = frame(params, scene)[output]
     weights = jax.random.normal(key, probe.shape)
+    values = [get_value(path, params, scene) for path in paths]
+
+    def loss(values):
+        p, s = params, scene
+        for path, value in zip(paths, values):
+            p, s = set_value(path, value, p, s)
+        return jnp.sum(weights * frame(p, s)[output])
+
+    gradients = jax.grad(loss)(values)  # one linearisation for every path (each would compile anew)
     results = {}
-    for i, path in enumerate(paths):
-        value = get_value(path, params, scene)
+    for i, (path, value, gradient) in enumerate(zip(paths, values, gradients)):
         direction = jax.random.normal(jax.random.fold_in(key, i + 1), value.shape)
         direction = direction / jnp.linalg.norm(direction.reshape(-1))
-
-        def loss(v):
-            p, s = set_value(path, v, params, scene)
-            return jnp.sum(weights * frame(p, s)[output])
-
-        analytic = float(jnp.vdot(jax.grad(loss)(value), direction, precision=jax.lax.Precision.HIGHEST))
-        numeric = float((loss(value + eps * direction) - loss(value - eps * direction)) / (2 * eps))
+        moved = lambda sign: values[:i] + [value + sign * eps * direction] + values[i + 1:]
+        analytic = float(jnp.vdot(gradient, direction, precision=jax.lax.Precision.HIGHEST))
+        numeric = float((loss(moved(1.0)) - loss(moved(-1.0))) / (2 * eps))
         results[path] = (analytic, numeric)
         scale = max(abs(analytic), abs(numeric), 1e-3)
         if abs(analytic - numeric) > rtol * scale:

@@ -1,10 +1,12 @@
 """Physics of the `clouds` technique (GPU Pro 6 II.4): LUTs against direct integration and closed forms, the
-scattering orders' energy, Eqs. 4.8–4.9, the sort, blending, upsampling and bad options. The generic
-cases (gradients, jit) are in tests/test_techniques.py (-m slow)."""
+scattering orders' energy, Eqs. 4.8–4.9, the sort, blending, screen-tile binning against every pixel meeting
+every particle, upsampling and bad options. The generic cases (gradients, jit) are in
+tests/test_techniques.py (-m slow)."""
 
 import dataclasses
 import functools
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -303,6 +305,85 @@ def test_hit_capacity_overflow_is_counted():
     assert int(small[2].overflow) >= int(full[2].needed) - 10  # at least the largest chunk's excess
     assert int(small[2].needed) == int(full[2].needed)
     assert (small[1] >= full[1] - 1e-6).all() and not np.allclose(small[1], full[1])  # dropped: a wrong frame
+
+
+# ---------------------------------------------------------------------------------------------- binning
+
+
+BIN_CAMERA = gp.scene.make_camera((0.0, 0.0, 10.0), (0.0, 0.0, 0.0), fov_y_degrees=90.0, resolution=(32, 32))
+BINNED = ([[0.3, 0.2, 9.5], [0.0, 0.0, 9.91], [0.0, 0.0, 0.0], [-6.0, 6.0, 0.0], [-5.4, 5.4, 0.8], [5.0, -5.0, -6.0],
+           [2.0, 2.0, 3.0], [30.0, 0.0, 0.0]],
+          [1.0, 0.045, 2.0, 1.5, 1.5, 3.0, 1.0, 1.0],
+          [True, True, True, True, True, True, False, True])
+"""(centres, radii, visible) seen by BIN_CAMERA (the eye at z = 10, near plane 0.1, 90° field of view): a
+sphere holding the eye; one crossing the near plane (0.09 deep, radius 0.045) that the rays meet in front of
+it at up to 30° off the axis, beyond the rectangle of its part past the near plane (< 24.2°); one on the image
+centre (the corner of 4 tiles of 8²); two intersecting ones in a corner; a large far one; a culled one on
+screen; one off screen."""
+
+
+@functools.lru_cache(maxsize=None)
+def _binned_renderer(blending, binning):
+    """render_particles(_tiled) of BINNED, sorted back to front, jitted, with constant LUTs as _renderer, over
+    BIN_CAMERA's 32×32 rays, with a surface at distance 10.5 on the left half (a depth test)."""
+    origins, directions, _ = pixel_rays(BIN_CAMERA)
+    surface = jnp.where(jnp.arange(32)[None, :] < 16, 10.5, C._BIG) * jnp.ones((32, 1))
+    ray = (origins.reshape(-1, 3), directions.reshape(-1, 3), surface.reshape(-1))
+    luts = C.CloudLUTs(C.wrap_azimuth(jnp.ones((4, 8, 16))), None, C.wrap_azimuth(jnp.full((4, 8, 4), 0.1)))
+    params = {p.name: jnp.asarray(p.default, jnp.float32) for p in C.PARAMS}
+    params["extinction"] = jnp.float32(1.5)
+    centres, radii, visible = (np.asarray(a) for a in BINNED)
+    order = np.argsort(-np.linalg.norm(centres - np.array([0.0, 0.0, 10.0]), axis=-1))
+    n = len(radii)
+    arrays = (jnp.asarray(centres[order], jnp.float32), jnp.asarray(radii[order], jnp.float32), jnp.full(n, 0.8),
+              jnp.asarray(visible[order]), jnp.full(n, 0.7), jnp.full(n, 0.9))
+    loop = dict(blending=blending, hit_capacity=4096, od_dims=(4, 8, 4, 4), ms_dims=(4, 8, 4), layer_bottom=-2.0,
+                layer_thickness=4.0)
+    sun = C._normalize(params["sun_direction"])
+
+    @jax.jit
+    def render():
+        if binning == "none":
+            return C.render_particles(params, luts, arrays, ray, sun, jnp.int32(n), particle_chunk=2, **loop), None
+        lists, counts = C.bin_particles(arrays[0], arrays[1], arrays[3], BIN_CAMERA, bin_tile=8,
+                                        tile_particle_capacity=64)
+        return C.render_particles_tiled(params, luts, arrays, ray, sun, lists, shape=(32, 32), bin_tile=8,
+                                        tile_chunk=2, **loop), counts
+
+    return render
+
+
+@pytest.mark.parametrize("blending", ["alpha", "volume_aware"])
+def test_binned_rendering_equals_every_pixel_meeting_every_particle(blending):
+    (*binned, counts), per_tile = _binned_renderer(blending, "tiles")()
+    (*plain, plain_counts), _ = _binned_renderer(blending, "none")()
+    for a, b in zip(binned, plain):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-6)
+    assert int(counts.hits) == int(plain_counts.hits) and int(counts.merges) == int(plain_counts.merges)
+    assert int(counts.overflow) == 0 and int(plain_counts.overflow) == 0
+    transmittance = np.asarray(plain[1]).reshape(32, 32)
+    assert (transmittance < 1).all()  # the sphere holding the eye covers every pixel, in every tile's list
+    assert blending == "alpha" or int(plain_counts.merges) > 0
+    per_tile = np.asarray(per_tile)
+    assert per_tile.min() >= 2 and per_tile.max() > per_tile.min()  # the eye and near-plane spheres everywhere
+    assert int(counts.tests) < int(plain_counts.tests)  # the lists skip particles: fewer ray–sphere tests
+    assert int(counts.tests) < int(counts.steps) * 32 * 32 * 2  # and some step ran on the longest lists' tiles only
+
+
+def test_gp_render_grows_the_tile_particle_capacity_to_the_unbinned_image(capsys):
+    scene = gp.scenes.sphere(resolution=(24, 24))  # rendered at 12×12: one tile of 12², one compiled width
+    make = lambda **options: gp.pipeline_for("clouds", example=True, outputs=("hdr_clouds",), bin_tile=12, **options)
+    frame = gp.render(scene, make(tile_particle_capacity=1))
+    counters = {k: int(v) for k, v in frame["counters"]["clouds"].items()}
+    message = re.search(r"clouds: tile_list_overflow = (\d+) with tile_particle_capacity = 1: growing it to (\d+)",
+                        capsys.readouterr().err)
+    assert message and int(message[1]) > 0 and int(message[2]) == counters["tile_particle_capacity_needed"] > 1
+    assert counters["tile_list_overflow"] == 0 and counters["tile_particle_pairs"] > 0
+    plain = make(binning="none")
+    expected = plain(plain.init_params(), scene)
+    assert counters["intersections"] == int(expected["counters"]["clouds"]["intersections"]) > 0
+    np.testing.assert_allclose(np.asarray(frame["hdr_clouds"]), np.asarray(expected["hdr_clouds"]), rtol=1e-5,
+                               atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------- upsampling

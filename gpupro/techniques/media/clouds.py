@@ -97,14 +97,28 @@ pixels take the farthest surface of their f × f block; full-resolution pixels a
 pixels, each kept only where its nearest cloud distance is in front of the full-resolution surface (or
 it has no cloud), renormalised; with a total weight ≤ 10⁻² the pixel gets no clouds.
 
-The render loop (the chapter rasterises each particle's bounding box; here every pixel meets every
-visible particle). Sorted particles go in chunks of ``particle_chunk``; per chunk the ray–sphere tests of
-all pixels with all its particles are dense, the intersecting pairs are compacted (count → scan → fill)
-into ``hit_capacity`` slots and only those are shaded (the LUT fetches), the pairs past the capacity
-counted in ``hit_overflow`` (the entry points grow the capacity to ``hit_capacity_needed`` and render
-again). Alpha blending composites a chunk in closed form (each particle attenuated by the exclusive sum
-of the optical masses in front of it within the chunk); volume-aware blending merges particle by particle,
-a sequential scan. Chunks past the number of visible particles are skipped.
+The render loop (the chapter rasterises each particle's screen bounding box; here screen tiles). With
+``binning = "tiles"`` (:func:`bin_particles`) each visible particle gets the conservative pixel rectangle
+of its sphere's projection (the projected corners of its view-space bounding cube; the whole screen for a
+sphere that holds the eye or crosses the near plane) and is listed in every tile of ``bin_tile``² pixels
+the rectangle overlaps, count → scan → fill, in the sorted (back-to-front) order, at most
+``tile_particle_capacity`` per tile: pairs past it are counted in ``tile_list_overflow`` and the entry
+points grow the capacity to ``tile_particle_capacity_needed`` and render again. Step j of the loop takes
+entries j K … (j + 1) K − 1 (K = ``tile_chunk``) of every tile's list and tests them against that
+tile's pixels only (:func:`render_particles_tiled`); tiles are ordered by decreasing list length and a
+step runs on all T tiles, or on the first ⌈T/4⌉ where they hold every tile with entries left (its share
+of ``hit_capacity`` is its share of the tiles); the loop ends with the longest list. With ``binning =
+"none"`` (the reference, :func:`render_particles`) every pixel meets every visible particle, in chunks
+of ``particle_chunk`` sorted particles, chunks past the visible ones skipped. Either way
+the ray–sphere tests of a step's pixel–particle pairs are dense, the intersecting pairs are compacted
+(count → scan → fill) into ``hit_capacity`` slots and only those are shaded (the LUT fetches), the pairs
+past the capacity counted in ``hit_overflow`` (grown to ``hit_capacity_needed``). Alpha blending
+composites a step in closed form (each particle attenuated by the exclusive sum of the optical masses in
+front of it within the step); volume-aware blending merges particle by particle, a sequential scan over
+the step's particles. A pixel meets the same particles in the same order with and without binning (a
+particle left out of a tile's list meets none of its rays, the rectangle being conservative and the
+tiles' edges half a pixel from the pixel centres), so the images agree, up to the summation order of
+alpha blending's closed form.
 
 Departures: particles are spheres, not turned by a random azimuth (so that the field the path tracer
 sees is exactly the sum of particles); the cloud layer is flat (no Earth curvature: y is the altitude);
@@ -141,10 +155,13 @@ from gpupro.media import cloud_field, henyey_greenstein, pixel_rays, ray_box, tr
 from gpupro.numerics import dot3
 from gpupro.technique import (Buffer, Capacity, Check, Counter, Option, Param, Technique, integer, number, one_of,
                               outside_trace, register)
+from gpupro.techniques.lights.tiled import (fill_light_lists, from_tiles, screen_bounds, tile_grid, tile_overlaps,
+                                           to_tiles)
 
 _BIG = 1e30  # "no cloud" distance: the chapter's +FLT_MAX, kept finite
 _TINY = 1e-20
 BLENDINGS = ("volume_aware", "alpha")
+BINNINGS = ("tiles", "none")
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -697,17 +714,19 @@ def _frustum_visible(centres, radii, camera):
 
 
 def _intersect(ray, chunk):
-    """Ray–sphere of every pixel ray with every particle of a chunk: (hit, t₀, near, far) [N, C], the
-    extent [near, far] clipped to the eye and to the scene's surface (the depth test)."""
+    """Ray–sphere of G groups of pixel rays with their group's particles: ``ray`` = (origins [G, N, 3],
+    unit directions [G, N, 3], surface distance [G, N]), ``chunk`` arrays [G, C, ...]. Returns (hit, t₀,
+    near, far) [G, N, C], the extent [near, far] clipped to the eye and to the scene's surface (the depth
+    test)."""
     origins, directions, t_surface = ray
     centres, radii, valid = chunk[0], chunk[1], chunk[3]
-    oc = centres[None] - origins[:, None]  # [N, C, 3]
-    b = dot3(oc, directions[:, None])
-    disc = b * b - dot3(oc, oc) + radii * radii
+    oc = centres[:, None] - origins[:, :, None]  # [G, N, C, 3]
+    b = dot3(oc, directions[:, :, None])
+    disc = b * b - dot3(oc, oc) + (radii * radii)[:, None]
     half = _safe_sqrt(disc)
     t0 = b - half
-    near, far = jnp.maximum(t0, 0.0), jnp.minimum(b + half, t_surface[:, None])
-    return (disc > 0.0) & (far > near) & valid[None], t0, near, far
+    near, far = jnp.maximum(t0, 0.0), jnp.minimum(b + half, t_surface[..., None])
+    return (disc > 0.0) & (far > near) & valid[:, None], t0, near, far
 
 
 def _shade(params, luts, origin, direction, centre, radius, density, a_single, a_multiple, t0, near, far, sun, *,
@@ -733,96 +752,226 @@ class _Counts(typing.NamedTuple):
     hits: jax.Array  # pixel–particle intersections
     merges: jax.Array  # volume-aware merges of overlapping elements
     overflow: jax.Array  # intersections past hit_capacity (dropped)
-    needed: jax.Array  # the largest number of intersections of one chunk
+    needed: jax.Array  # the largest number of intersections of one step
+    tests: jax.Array  # ray–sphere tests
+    steps: jax.Array  # steps of the render loop run
 
 
-def _chunk_layers(params, luts, ray, chunk, sun, counts, *, hit_capacity, **shading):
-    """The particles of one chunk as layers per pixel: (shaded mask [N, C], Layer [N, C]); only the
-    intersecting pairs are shaded, compacted (count → scan → fill) into ``hit_capacity`` slots."""
+def _chunk_layers(params, luts, ray, chunk, sun, counts, *, hit_capacity, share=1, **shading):
+    """One step's particles as layers per pixel, for G groups of N pixels, each meeting its own group's
+    C particles (``ray`` arrays [G, N, ...], ``chunk`` arrays [G, C, ...]; G = 1 without binning, one group
+    per tile with it): (shaded mask [G·N, C], Layer [G·N, C], counts). Only the intersecting pairs are
+    shaded, compacted (count → scan → fill) into ⌈``hit_capacity`` · ``share``⌉ slots, ``share`` the
+    fraction of the image the step covers; ``counts.needed`` takes the capacity that would have sufficed,
+    the intersections over ``share``."""
     hit, t0, near, far = _intersect(ray, chunk)
-    n, c = hit.shape
+    g, n, c = hit.shape
+    total = g * n * c
+    hit_capacity = min(math.ceil(hit_capacity * share), total)
     flat = hit.reshape(-1)
     count = jnp.sum(flat)
-    (index,) = jnp.nonzero(flat, size=hit_capacity, fill_value=n * c)  # past the end: dropped on scatter
-    safe = jnp.minimum(index, n * c - 1)
-    pixel, particle = safe // c, safe % c
-    origins, directions, _ = ray
-    centres, radii, densities, _, a_single, a_multiple = chunk
+    (index,) = jnp.nonzero(flat, size=hit_capacity, fill_value=total)  # past the end: dropped on scatter
+    safe = jnp.minimum(index, total - 1)
+    pixel, particle = safe // c, (safe // (n * c)) * c + safe % c  # into [G·N] and [G·C]
+    origins, directions, _ = (a.reshape((g * n,) + a.shape[2:]) for a in ray)
+    centres, radii, densities, _, a_single, a_multiple = (a.reshape((g * c,) + a.shape[2:]) for a in chunk)
     pairs = lambda a: a.reshape(-1)[safe]
     optical, color = _shade(params, luts, origins[pixel], directions[pixel], centres[particle], radii[particle],
                             densities[particle], a_single[particle], a_multiple[particle], pairs(t0), pairs(near),
                             pairs(far), sun, **shading)
-    scatter = lambda values, shape: jnp.zeros((n * c,) + shape, values.dtype).at[index].set(values, mode="drop")
-    shaded = scatter(jnp.ones(hit_capacity, bool), ()).reshape(n, c)
-    layer = Layer(near, far, scatter(optical, ()).reshape(n, c), scatter(color, (3,)).reshape(n, c, 3))
+    scatter = lambda values, shape: jnp.zeros((total,) + shape, values.dtype).at[index].set(values, mode="drop")
+    shaded = scatter(jnp.ones(hit_capacity, bool), ()).reshape(g * n, c)
+    layer = Layer(near.reshape(g * n, c), far.reshape(g * n, c), scatter(optical, ()).reshape(g * n, c),
+                  scatter(color, (3,)).reshape(g * n, c, 3))
     counts = counts._replace(hits=counts.hits + count, overflow=counts.overflow + jnp.maximum(count - hit_capacity, 0),
-                             needed=jnp.maximum(counts.needed, count))
+                             needed=jnp.maximum(counts.needed, count if share == 1 else
+                                                jnp.ceil(count / share).astype(jnp.int32)),
+                             tests=counts.tests + total,
+                             steps=counts.steps + 1)
     return shaded, layer, counts
+
+
+class _Pixels(typing.NamedTuple):
+    """The blending state of n pixels: back buffer (premultiplied colour [n, 3], transmittance [n]), the
+    nearest cloud distance [n] (_BIG where none), and for volume-aware blending the closest element
+    (a Layer [n]; ``()`` for alpha blending)."""
+
+    color: jax.Array
+    transmittance: jax.Array
+    nearest: jax.Array
+    closest: typing.Any
+
+
+def _empty_pixels(n, *, blending):
+    closest = empty_layer((n,)) if blending == "volume_aware" else ()
+    return _Pixels(jnp.zeros((n, 3)), jnp.ones(n), jnp.full(n, _BIG), closest)
+
+
+def _blend(pixels: _Pixels, shaded, layer: Layer, merges):
+    """Blends one step's layers [n, C] (back to front along C; ``shaded`` [n, C] marks the particles met)
+    into ``pixels``; returns (pixels, ``merges`` + the volume-aware merges of overlapping elements)."""
+    nearest = jnp.minimum(pixels.nearest, jnp.min(jnp.where(shaded, layer.near, _BIG), axis=1))
+    if not isinstance(pixels.closest, Layer):
+        # Alpha, in closed form: particle c lies behind c + 1 … C − 1, attenuated by their masses.
+        t = jnp.exp(-layer.mass)
+        in_front = jnp.cumsum(layer.mass[:, ::-1], axis=1)[:, ::-1] - layer.mass
+        contribution = jnp.sum((layer.color * (1.0 - t)[..., None]) * jnp.exp(-in_front)[..., None], axis=1)
+        chunk_t = jnp.exp(-jnp.sum(layer.mass, axis=1))
+        return _Pixels(contribution + chunk_t[:, None] * pixels.color, chunk_t * pixels.transmittance, nearest,
+                       ()), merges
+
+    def particle(state, element):
+        closest, color, transmittance, merges = state
+        hit, layer = element
+        merged, commit_c, commit_t = merge_layers(closest, layer)
+        overlapped = hit & (jnp.minimum(closest.far, layer.far) > jnp.maximum(closest.near, layer.near))
+        keep = lambda a, b: jnp.where(hit[(...,) + (None,) * (a.ndim - 1)], a, b)
+        closest = jax.tree_util.tree_map(keep, merged, closest)
+        color = jnp.where(hit[:, None], commit_c + commit_t[:, None] * color, color)
+        transmittance = jnp.where(hit, commit_t * transmittance, transmittance)
+        return (closest, color, transmittance, merges + jnp.sum(overlapped)), None
+
+    per_particle = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 1, 0), (shaded, layer))
+    (closest, color, transmittance, merges), _ = jax.lax.scan(
+        particle, (pixels.closest, pixels.color, pixels.transmittance, merges), per_particle)
+    return _Pixels(color, transmittance, nearest, closest), merges
+
+
+def _render_step(params, luts, ray, sun, carry, chunk, **shading):
+    """One step of the render loop: ``chunk`` (arrays [G, C, ...]) met by ``ray`` ([G, N, ...]) and
+    blended into the carry (:class:`_Pixels` [G·N], :class:`_Counts`); ``shading`` as
+    :func:`_chunk_layers`."""
+    pixels, counts = carry
+    shaded, layer, counts = _chunk_layers(params, luts, ray, chunk, sun, counts, **shading)
+    pixels, merges = _blend(pixels, shaded, layer, counts.merges)
+    return pixels, counts._replace(merges=merges)
+
+
+def _resolve(pixels: _Pixels):
+    """(colour [n, 3] premultiplied, transmittance [n], nearest cloud distance [n]) after the last step:
+    volume-aware blending composites its closest element over the back buffer."""
+    color, transmittance = pixels.color, pixels.transmittance
+    if isinstance(pixels.closest, Layer):
+        color, transmittance = composite_layer(pixels.closest, color, transmittance)
+    return color, transmittance, pixels.nearest
+
+
+def _no_counts():
+    return _Counts(*(jnp.int32(0) for _ in _Counts._fields))
 
 
 def render_particles(params, luts, arrays, ray, sun, visible_count, *, blending, particle_chunk, hit_capacity,
                      **shading):
     """Back-to-front rendering of the sorted particles (``arrays``: centres [P, 3], radii, densities,
     visible, a₁, a₂ [P], P a multiple of ``particle_chunk``) along the rays ``ray`` = (origins [N, 3],
-    unit directions [N, 3], surface distance [N]); chunks past ``visible_count`` are skipped. Returns
-    (colour [N, 3] premultiplied, transmittance [N], nearest cloud distance [N] (≥ 1e30 where none),
-    :class:`_Counts`)."""
+    unit directions [N, 3], surface distance [N]): every pixel meets every particle of each chunk
+    (``binning = "none"``, the reference of :func:`render_particles_tiled`); chunks past ``visible_count``
+    are skipped. Returns (colour [N, 3] premultiplied, transmittance [N], nearest cloud distance [N] (≥ 1e30
+    where none), :class:`_Counts`)."""
     steps = arrays[0].shape[0] // particle_chunk
-    chunks = jax.tree_util.tree_map(lambda a: a.reshape((steps, particle_chunk) + a.shape[1:]), arrays)
-    n = ray[0].shape[0]
-    layers_of = functools.partial(_chunk_layers, params, luts, ray, sun=sun,
-                                  hit_capacity=min(hit_capacity, n * particle_chunk), **shading)
-
-    def chunk_alpha(carry, chunk):
-        color, transmittance, nearest, counts = carry
-        shaded, layer, counts = layers_of(chunk=chunk, counts=counts)
-        # Within the chunk, back to front is index order: particle c lies behind c + 1 … C − 1.
-        t = jnp.exp(-layer.mass)
-        in_front = jnp.cumsum(layer.mass[:, ::-1], axis=1)[:, ::-1] - layer.mass
-        contribution = jnp.sum((layer.color * (1.0 - t)[..., None]) * jnp.exp(-in_front)[..., None], axis=1)
-        chunk_t = jnp.exp(-jnp.sum(layer.mass, axis=1))
-        nearest = jnp.minimum(nearest, jnp.min(jnp.where(shaded, layer.near, _BIG), axis=1))
-        return (contribution + chunk_t[:, None] * color, chunk_t * transmittance, nearest, counts), None
-
-    def chunk_volume(carry, chunk):
-        (closest, color, transmittance), nearest, counts = carry
-        shaded, layers, counts = layers_of(chunk=chunk, counts=counts)
-
-        def particle(state, element):
-            closest, color, transmittance, merges = state
-            hit, layer = element
-            merged, commit_c, commit_t = merge_layers(closest, layer)
-            overlapped = hit & (jnp.minimum(closest.far, layer.far) > jnp.maximum(closest.near, layer.near))
-            keep = lambda a, b: jnp.where(hit[(...,) + (None,) * (a.ndim - 1)], a, b)
-            closest = jax.tree_util.tree_map(keep, merged, closest)
-            color = jnp.where(hit[:, None], commit_c + commit_t[:, None] * color, color)
-            transmittance = jnp.where(hit, commit_t * transmittance, transmittance)
-            return (closest, color, transmittance, merges + jnp.sum(overlapped)), None
-
-        per_particle = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 1, 0), (shaded, layers))
-        (closest, color, transmittance, merges), _ = jax.lax.scan(
-            particle, (closest, color, transmittance, counts.merges), per_particle)
-        nearest = jnp.minimum(nearest, jnp.min(jnp.where(shaded, layers.near, _BIG), axis=1))
-        return ((closest, color, transmittance), nearest, counts._replace(merges=merges)), None
-
-    counts = _Counts(*(jnp.int32(0) for _ in _Counts._fields))
-    if blending == "alpha":
-        init, body = (jnp.zeros((n, 3)), jnp.ones(n), jnp.full(n, _BIG), counts), chunk_alpha
-    else:
-        init, body = ((empty_layer((n,)), jnp.zeros((n, 3)), jnp.ones(n)), jnp.full(n, _BIG), counts), chunk_volume
-    body = jax.checkpoint(body)
+    chunks = jax.tree_util.tree_map(lambda a: a.reshape((steps, 1, particle_chunk) + a.shape[1:]), arrays)
+    grouped = jax.tree_util.tree_map(lambda a: a[None], ray)  # one group: all pixels
+    body = jax.checkpoint(functools.partial(_render_step, params, luts, grouped, sun, hit_capacity=hit_capacity,
+                                            **shading))
 
     def step(carry, indexed):
         index, chunk = indexed
-        return jax.lax.cond(index * particle_chunk < visible_count, body, lambda c, _: (c, None), carry, chunk)
+        return jax.lax.cond(index * particle_chunk < visible_count, body, lambda c, _: c, carry, chunk), None
 
-    carry, _ = jax.lax.scan(step, init, (jnp.arange(steps), chunks))
-    if blending == "alpha":
-        color, transmittance, nearest, counts = carry
-    else:
-        (closest, color, transmittance), nearest, counts = carry
-        color, transmittance = composite_layer(closest, color, transmittance)
-    return color, transmittance, nearest, counts
+    init = (_empty_pixels(ray[0].shape[0], blending=blending), _no_counts())
+    (pixels, counts), _ = jax.lax.scan(step, init, (jnp.arange(steps), chunks))
+    return (*_resolve(pixels), counts)
+
+
+def bin_particles(centres, radii, visible, camera, *, bin_tile, tile_particle_capacity):
+    """Screen-tile lists of the sorted particles (count → scan → fill). Each ``visible`` [P] sphere
+    (``centres`` [P, 3], ``radii`` [P]) gets the conservative pixel rectangle of its projection for
+    ``camera`` (:func:`gpupro.techniques.lights.tiled.screen_bounds`; the whole screen for a sphere that
+    reaches nearer than the near plane, holding the eye or crossing it, as the pixel rays start at the
+    eye) and is listed in every tile of ``bin_tile``² pixels the rectangle overlaps. Returns (lists int32
+    [T, L], counts int32 [T]): per tile (row-major) the particle indices in ascending order, i.e. back to
+    front, −1 past the end, L = min(``tile_particle_capacity``, P); counts before truncation (entries past
+    L are dropped: a wrong frame, reported by the counters)."""
+    rect, depth = screen_bounds(centres, radii, camera)
+    if camera.projection == "perspective":
+        # The rays start at the eye, not at the near plane: a sphere reaching nearer may meet any of them.
+        everywhere = jnp.array([-jnp.inf, jnp.inf, -jnp.inf, jnp.inf], jnp.float32)
+        rect = jnp.where(depth[:, :1] < camera.near, everywhere, rect)
+    nowhere = jnp.array([jnp.inf, -jnp.inf, jnp.inf, -jnp.inf], jnp.float32)
+    rect = jnp.where(visible[:, None], rect, nowhere)
+    overlap = tile_overlaps(rect, None, None, tiles_yx=tile_grid(camera.resolution, tile=bin_tile), tile=bin_tile)
+    return fill_light_lists(overlap, min(tile_particle_capacity, centres.shape[0]))
+
+
+_TILE_DIVISORS = (1, 4)
+"""The binned render loop's steps run on all T tiles or on the ⌈T/4⌉ with the longest lists, the smaller
+that holds every tile with list entries left: one compiled step per width. (On the clouds config at
+960×540, 16² tiles and 16 entries a step, the pairs tested are 7.8 times the tile–particle pairs · 16²
+with all tiles every step, 3.4 times with these two widths, 2.9 times with halvings down to T/8.)"""
+
+
+def render_particles_tiled(params, luts, arrays, ray, sun, lists, *, shape, bin_tile, tile_chunk, blending,
+                           hit_capacity, **shading):
+    """:func:`render_particles` (same ``arrays``, any P), tile by tile: ``ray`` arrays [h·w, ...] of an
+    image ``shape`` = (h, w) in row-major order, ``lists`` int32 [T, L] from :func:`bin_particles` for
+    tiles of ``bin_tile``² pixels. Step j meets entries j·K … (j + 1)·K − 1 (K = min(``tile_chunk``, L)) of
+    every tile's list with that tile's pixels and blends them; tiles are ordered by decreasing list length,
+    so the tiles with entries left are a prefix, and the step runs on the smaller of the prefixes of
+    :data:`_TILE_DIVISORS` that holds them, with the share of ``hit_capacity`` of its share of the tiles.
+    Steps past the longest list are skipped. Every pixel meets the particles that can reach it in the same
+    order as without binning, so the result is the same. Returns what :func:`render_particles` returns."""
+    n_tiles, length = lists.shape
+    k = min(tile_chunk, length)
+    rounds = -(-length // k)
+    lists = jnp.pad(lists, ((0, 0), (0, rounds * k - length)), constant_values=-1)
+    entries = jnp.sum(lists >= 0, axis=1)
+    order = jnp.argsort(-entries, stable=True)  # longest lists first
+    lists, entries = lists[order], entries[order]
+    rows, cols = tile_grid(shape, tile=bin_tile)
+    pixels_per_tile = bin_tile * bin_tile
+
+    def tiled(a, **pad):  # [h·w, ...] → [T, t², ...] in the tiles' order
+        image = a.reshape(tuple(shape) + a.shape[1:])
+        padding = [(0, rows * bin_tile - shape[0]), (0, cols * bin_tile - shape[1])] + [(0, 0)] * (a.ndim - 1)
+        return to_tiles(jnp.pad(image, padding, **pad), tile=bin_tile)[order]
+
+    # Pixels past the image's edge get a copy of the edge rays (no degenerate directions, even in the
+    # unused shading slots) and a surface at 0 (so they meet nothing).
+    origins, directions, surface = ray
+    ray_tiles = (tiled(origins, mode="edge"), tiled(directions, mode="edge"), tiled(surface))
+
+    def on_prefix(width):
+        def prefix_step(carry, j):
+            pixels, counts = carry
+            ids = jax.lax.dynamic_slice_in_dim(lists[:width], j * k, k, axis=1)  # [width, K]
+            chunk = tuple(a[jnp.maximum(ids, 0)] for a in arrays)
+            chunk = chunk[:3] + (chunk[3] & (ids >= 0),) + chunk[4:]
+            used = width * pixels_per_tile
+            part = jax.tree_util.tree_map(lambda a: a[:used], pixels)
+            part, counts = _render_step(params, luts, jax.tree_util.tree_map(lambda a: a[:width], ray_tiles), sun,
+                                        (part, counts), chunk, hit_capacity=hit_capacity, share=width / n_tiles,
+                                        **shading)
+            return jax.tree_util.tree_map(lambda a, b: a.at[:used].set(b), pixels, part), counts
+
+        return jax.checkpoint(prefix_step)
+
+    widths = sorted({-(-n_tiles // divisor) for divisor in _TILE_DIVISORS}, reverse=True)
+    branches = [lambda carry, j: carry] + [on_prefix(width) for width in widths]
+
+    def step(carry, j):
+        active = jnp.sum(entries > j * k)  # tiles with entries in this step: a prefix
+        branch = jnp.where(active > 0, jnp.sum(jnp.asarray(widths) >= active), 0)  # the smallest width ≥ active
+        return jax.lax.switch(branch, branches, carry, j), None
+
+    init = (_empty_pixels(n_tiles * pixels_per_tile, blending=blending), _no_counts())
+    (pixels, counts), _ = jax.lax.scan(step, init, jnp.arange(rounds))
+    inverse = jnp.argsort(order)
+
+    def untiled(a):  # [T·t², ...] in the tiles' order → [h·w, ...]
+        a = a.reshape((n_tiles, pixels_per_tile) + a.shape[1:])[inverse]
+        return from_tiles(a, tuple(shape), tile=bin_tile).reshape((shape[0] * shape[1],) + a.shape[2:])
+
+    return (*(untiled(a) for a in _resolve(pixels)), counts)
 
 
 _LUT_KEYS = ("optical_depth_lut", "scattering_lut", "scattering_radii", "scattering_orders", "integration_steps",
@@ -866,8 +1015,8 @@ def render_clouds(params, inputs, scene, **options):
     origins, directions, depth_to_t = pixel_rays(camera)
     covered = inputs["coverage"] > 0
     surface = jnp.where(covered, inputs["view_depth"] * depth_to_t, _BIG)
+    low_camera = dataclasses.replace(camera, resolution=(height // factor, width // factor))
     if factor > 1:
-        low_camera = dataclasses.replace(camera, resolution=(height // factor, width // factor))
         low_origins, low_directions, _ = pixel_rays(low_camera)
         low_surface = jnp.max(surface.reshape(height // factor, factor, width // factor, factor), axis=(1, 3))
     else:
@@ -877,10 +1026,18 @@ def render_clouds(params, inputs, scene, **options):
     od_dims = _od_dims(cloud_field.dims(options["optical_depth_lut"], 4))
     ms_dims = cloud_field.dims(options["scattering_lut"], 3)
     thickness = options["cell_layers"] * options["cell_size"]
-    color, transmittance, nearest, counts = render_particles(
-        params, luts, arrays, ray, sun, visible_count, blending=options["blending"],
-        particle_chunk=options["particle_chunk"], hit_capacity=options["hit_capacity"], od_dims=od_dims,
-        ms_dims=ms_dims, layer_bottom=options["altitude"] - 0.5 * thickness, layer_thickness=thickness)
+    loop = dict(blending=options["blending"], hit_capacity=options["hit_capacity"], od_dims=od_dims,
+                ms_dims=ms_dims, layer_bottom=options["altitude"] - 0.5 * thickness, layer_thickness=thickness)
+    if options["binning"] == "tiles":
+        lists, per_tile = bin_particles(arrays[0], arrays[1], arrays[3], low_camera, bin_tile=options["bin_tile"],
+                                        tile_particle_capacity=options["tile_particle_capacity"])
+        color, transmittance, nearest, counts = render_particles_tiled(
+            params, luts, arrays, ray, sun, lists, shape=shape, bin_tile=options["bin_tile"],
+            tile_chunk=options["tile_chunk"], **loop)
+    else:
+        lists, per_tile = jnp.zeros((1, 0), jnp.int32), jnp.zeros(1, jnp.int32)
+        color, transmittance, nearest, counts = render_particles(params, luts, arrays, ray, sun, visible_count,
+                                                                 particle_chunk=options["particle_chunk"], **loop)
     color, transmittance, nearest = color.reshape(shape + (3,)), transmittance.reshape(shape), nearest.reshape(shape)
     if factor > 1:
         color, transmittance = bilateral_upsample(color, transmittance, nearest, surface, factor=factor)
@@ -889,7 +1046,10 @@ def render_clouds(params, inputs, scene, **options):
         "particles": jnp.int32(setup.count), "particle_slots": jnp.int32(setup.slots),
         "particles_visible": visible_count.astype(jnp.int32), "intersections": counts.hits,
         "merges": counts.merges, "hit_overflow": counts.overflow, "hit_capacity_needed": counts.needed,
-        "rendered_pixels": jnp.int32(shape[0] * shape[1]),
+        "rendered_pixels": jnp.int32(shape[0] * shape[1]), "ray_sphere_tests": counts.tests,
+        "render_steps": counts.steps, "tile_particle_pairs": jnp.sum(per_tile),
+        "tile_list_overflow": jnp.sum(jnp.maximum(per_tile - lists.shape[1], 0)),
+        "tile_particle_capacity_needed": jnp.max(per_tile),
         "light_march_steps": jnp.int32(2 * setup.count * options["light_steps"]),
         "optical_depth_lut_texels": jnp.int32(math.prod(od_dims)),
         "scattering_lut_texels": jnp.int32(math.prod(ms_dims)),
@@ -900,7 +1060,8 @@ def render_clouds(params, inputs, scene, **options):
 OPTION_NAMES = FIELD_KEYS + ("lattice_resolution", "light_steps", "optical_depth_lut", "scattering_lut",
                              "scattering_radii", "scattering_orders", "integration_steps", "lut_g_single",
                              "lut_g_multiple", "lut_radius", "lut_extinction", "render_scale", "blending",
-                             "particle_chunk", "hit_capacity", "sort_block")
+                             "binning", "bin_tile", "tile_particle_capacity", "tile_chunk", "particle_chunk",
+                             "hit_capacity", "sort_block")
 
 
 def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, ring_dimension, cell_layers,
@@ -908,7 +1069,7 @@ def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, rin
           radius_jitter, seed,
           lattice_resolution, light_steps, optical_depth_lut, scattering_lut, scattering_radii, scattering_orders,
           integration_steps, lut_g_single, lut_g_multiple, lut_radius, lut_extinction, render_scale, blending,
-          particle_chunk, hit_capacity, sort_block):
+          binning, bin_tile, tile_particle_capacity, tile_chunk, particle_chunk, hit_capacity, sort_block):
     """Clouds over ``hdr`` [H, W, 3], depth-tested against ``view_depth`` [H, W] where ``coverage`` [H, W]
     > 0: ``hdr_clouds`` [H, W, 3] (radiance) and ``cloud_transmittance`` [H, W]."""
     options = {k: v for k, v in locals().items() if k in OPTION_NAMES}
@@ -966,9 +1127,19 @@ OPTIONS = (
                                              "bilaterally (chapter: 2)"),
     Option("blending", "volume_aware", one_of(*BLENDINGS), "volume_aware (Eqs. 4.8–4.9) or alpha (the chapter's "
                                                            "NVIDIA timings)"),
-    Option("particle_chunk", 64, integer(1), "particles per step of the render loop"),
-    Option("hit_capacity", 1 << 18, integer(1), "pixel–particle intersections shaded per chunk (lossy capacity: "
-                                              "grown on overflow)"),
+    Option("binning", "tiles", one_of(*BINNINGS), "tiles: each pixel meets only the particles listed in its screen "
+                                                  "tile (the chapter rasterises bounding boxes); none: every visible "
+                                                  "particle (the reference)"),
+    Option("bin_tile", 16, integer(1), "pixels per side of the screen tiles particles are binned into (at the "
+                                       "rendering resolution)"),
+    Option("tile_particle_capacity", 256, integer(1), "particles listed per screen tile (lossy capacity: grown on "
+                                                      "overflow)"),
+    Option("tile_chunk", 16, integer(1), "entries of every tile's list met per step of the render loop with "
+                                         "binning"),
+    Option("particle_chunk", 64, integer(1), "particles per step of the render loop without binning"),
+    Option("hit_capacity", 1 << 18, integer(1), "pixel–particle intersections shaded per step over the whole "
+                                              "image; a step over part of the tiles gets its share (lossy "
+                                              "capacity: grown on overflow)"),
     Option("sort_block", 128, POWER_OF_2, "keys per bitonic block of the sort (chapter: 128)"),
 )
 
@@ -1007,16 +1178,27 @@ register(Technique(
              Buffer("cloud_transmittance", "transmittance of the clouds in front of the scene (1: no cloud)", "Y")),
     options=OPTIONS,
     params=PARAMS,
-    capacities=(Capacity("hit_capacity", "hit_overflow", "intersections shaded per chunk of particles",
-                         needed="hit_capacity_needed"),),
+    capacities=(Capacity("hit_capacity", "hit_overflow", "intersections shaded per step of the render loop",
+                         needed="hit_capacity_needed"),
+                Capacity("tile_particle_capacity", "tile_list_overflow", "particles listed per screen tile",
+                         needed="tile_particle_capacity_needed", when=(("binning", "tiles"),))),
     counters=(Counter("particles", "cloud particles generated (voxels of positive density)"),
               Counter("particle_slots", "particle lattice voxels of the cell grid (valid or not)"),
               Counter("particles_visible", "particles left after frustum culling"),
-              Counter("rendered_pixels", "pixels the particles are rendered at (each tests every visible particle)"),
+              Counter("rendered_pixels", "pixels the particles are rendered at"),
+              Counter("ray_sphere_tests", "pixel–particle ray–sphere tests run (every pixel with every particle of "
+                                          "each chunk without binning; with its tile's list entries with binning)"),
+              Counter("render_steps", "steps of the render loop run (chunks of particles, or of every tile's list)"),
+              Counter("tile_particle_pairs", "tile–particle pairs binned: Σ over tiles of the particles listed "
+                                             "(0 without binning)"),
+              Counter("tile_list_overflow", "tile–particle pairs dropped past tile_particle_capacity (a wrong frame "
+                                            "if > 0)"),
+              Counter("tile_particle_capacity_needed", "the longest list of one tile"),
               Counter("intersections", "pixel–particle pairs where the ray meets the particle in front of the scene"),
               Counter("merges", "volume-aware merges of intersecting elements (0 with alpha blending)"),
               Counter("hit_overflow", "intersections dropped past hit_capacity (a wrong frame if > 0)"),
-              Counter("hit_capacity_needed", "the largest number of intersections in one chunk"),
+              Counter("hit_capacity_needed", "the largest number of intersections in one step (over the share "
+                                             "of the tiles it covers, with binning)"),
               Counter("light_march_steps", "lattice samples of the sun-attenuation march (2 per particle per step)"),
               Counter("optical_depth_lut_texels", "texels of the optical-depth LUT"),
               Counter("scattering_lut_texels", "texels of the multiple-scattering LUT")),
