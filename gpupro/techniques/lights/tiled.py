@@ -52,7 +52,7 @@ from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
 
-def screen_bounds(centre, radius, camera: Camera):
+def screen_bounds(centre, radius, camera: Camera, *, from_eye: bool = False):
     """Conservative pixel rectangles and view-depth extents of N spheres seen by ``camera``.
 
     ``centre`` [N, 3], ``radius`` [N] (world units; ``inf`` covers everything). Returns ``(rect [N, 4],
@@ -64,7 +64,9 @@ def screen_bounds(centre, radius, camera: Camera):
     a perspective camera the cube is first cut at the near plane (its corners' depths clamped to ≥ near):
     no sample lies nearer, and the cut cube, wholly in front of the eye, projects inside its corners'
     rectangle. So a sphere holding the eye or crossing the near plane gets the rectangle of its part
-    beyond the near plane, not the whole screen.
+    beyond the near plane, not the whole screen. ``from_eye``: the samples lie on rays starting at the
+    eye, nearer than the near plane too (volumes marched from the eye), so no cut: a sphere reaching
+    nearer than the near plane gets the whole screen.
     """
     height, width = camera.resolution
     view = camera.view_matrix()
@@ -73,7 +75,9 @@ def screen_bounds(centre, radius, camera: Camera):
     signs = jnp.array([[sx, sy, sz] for sx in (-1.0, 1.0) for sy in (-1.0, 1.0) for sz in (-1.0, 1.0)], jnp.float32)
     finite_radius = jnp.where(jnp.isfinite(radius), radius, 0.0)
     corners = centre_view[:, None, :] + finite_radius[:, None, None] * signs  # [N, 8, 3]
-    if camera.projection == "perspective":
+    perspective = camera.projection == "perspective"
+    cut = perspective and not from_eye
+    if cut:
         corners = corners.at[..., 2].min(-camera.near)
     homogeneous = jnp.concatenate([corners, jnp.ones_like(corners[..., :1])], axis=-1)
     clip = einsum("ij,nkj->nki", camera.projection_matrix(), homogeneous)
@@ -81,8 +85,9 @@ def screen_bounds(centre, radius, camera: Camera):
     x, y = (ndc[..., 0] + 1.0) * (0.5 * width), (1.0 - ndc[..., 1]) * (0.5 * height)
     rect = jnp.stack([x.min(1), x.max(1), y.min(1), y.max(1)], axis=1)
     everywhere = ~jnp.isfinite(radius)
-    nearest = camera.near if camera.projection == "perspective" else 0.0
-    behind = jnp.isfinite(radius) & (depth + radius < nearest)
+    if perspective and from_eye:
+        everywhere = everywhere | (depth - radius < camera.near)
+    behind = jnp.isfinite(radius) & (depth + radius < (camera.near if cut else 0.0)) & ~everywhere
     inf = jnp.float32(jnp.inf)
     rect = jnp.where(everywhere[:, None], jnp.array([-inf, inf, -inf, inf]), rect)
     rect = jnp.where(behind[:, None], jnp.array([inf, -inf, inf, -inf]), rect)

@@ -886,17 +886,12 @@ def render_particles(params, luts, arrays, ray, sun, visible_count, *, blending,
 def bin_particles(centres, radii, visible, camera, *, bin_tile, tile_particle_capacity):
     """Screen-tile lists of the sorted particles (count → scan → fill). Each ``visible`` [P] sphere
     (``centres`` [P, 3], ``radii`` [P]) gets the conservative pixel rectangle of its projection for
-    ``camera`` (:func:`gpupro.techniques.lights.tiled.screen_bounds`; the whole screen for a sphere that
-    reaches nearer than the near plane, holding the eye or crossing it, as the pixel rays start at the
-    eye) and is listed in every tile of ``bin_tile``² pixels the rectangle overlaps. Returns (lists int32
+    ``camera`` (:func:`gpupro.techniques.lights.tiled.screen_bounds` with ``from_eye``: the pixel rays start
+    at the eye, so a sphere reaching nearer than the near plane gets the whole screen) and is listed in every tile of ``bin_tile``² pixels the rectangle overlaps. Returns (lists int32
     [T, L], counts int32 [T]): per tile (row-major) the particle indices in ascending order, i.e. back to
     front, −1 past the end, L = min(``tile_particle_capacity``, P); counts before truncation (entries past
     L are dropped: a wrong frame, reported by the counters)."""
-    rect, depth = screen_bounds(centres, radii, camera)
-    if camera.projection == "perspective":
-        # The rays start at the eye, not at the near plane: a sphere reaching nearer may meet any of them.
-        everywhere = jnp.array([-jnp.inf, jnp.inf, -jnp.inf, jnp.inf], jnp.float32)
-        rect = jnp.where(depth[:, :1] < camera.near, everywhere, rect)
+    rect, _ = screen_bounds(centres, radii, camera, from_eye=True)
     nowhere = jnp.array([jnp.inf, -jnp.inf, jnp.inf, -jnp.inf], jnp.float32)
     rect = jnp.where(visible[:, None], rect, nowhere)
     overlap = tile_overlaps(rect, None, None, tiles_yx=tile_grid(camera.resolution, tile=bin_tile), tile=bin_tile)
