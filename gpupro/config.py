@@ -168,14 +168,17 @@ def _light_list(v):
 
 _LIGHT = {"position": _vector(3), "direction": _vector(3), "color": _vector(3), "intensity": _number(0.0),
           "range": _number(0.0, strict_lo=True), "inner_angle_degrees": _number(0.0, 90.0),
-          "outer_angle_degrees": _number(0.0, 90.0)}
+          "outer_angle_degrees": _number(0.0, 90.0), "length": _number(0.0)}
 LIGHT_KEYS = {
     "point": {k: _LIGHT[k] for k in ("position", "color", "intensity", "range")},
-    "spot": _LIGHT,
+    "spot": {k: _LIGHT[k] for k in _LIGHT if k != "length"},
     "directional": {k: _LIGHT[k] for k in ("direction", "color", "intensity")},
+    "capsule": {k: _LIGHT[k] for k in ("position", "direction", "color", "intensity", "range", "length")},
 }
-"""Keys of ``[[lights.point]]``, ``[[lights.spot]]`` and ``[[lights.directional]]`` entries: only those
-the kind uses, so that e.g. a point light's ``direction`` is refused rather than ignored."""
+"""Keys of ``[[lights.point]]``, ``[[lights.spot]]``, ``[[lights.directional]]`` and ``[[lights.capsule]]``
+entries: only those the kind uses, so that e.g. a point light's ``direction`` is refused rather than
+ignored. A capsule is the segment ``position ± length · direction`` (``length`` its half-length,
+default 0: a point light) lighting the points within ``range`` of it (:mod:`gpupro.scene.lights`)."""
 
 GENERATOR_KEYS = {"uniform_in_box": {"count", "range", "intensity", "seed", "white", "box_lo", "box_hi", "spot_fraction"},
                   "along_path": {"count", "range", "intensity", "seed", "white", "path", "offset"}}
@@ -197,7 +200,8 @@ SCHEMA: dict[str, Any] = {
                "range": _number(0.0, strict_lo=True), "intensity": _number(0.0),
                "seed": _integer(0, MAX_SEED, "jax.random.PRNGKey keeps 32 bits"), "white": _boolean,
                "keep_scene_lights": _boolean, "box_lo": _vector(3), "box_hi": _vector(3), "path": _points,
-               "offset": _number(0.0), "spot_fraction": _number(0.0, 1.0), "point": _light_list, "spot": _light_list, "directional": _light_list},
+               "offset": _number(0.0), "spot_fraction": _number(0.0, 1.0), "point": _light_list, "spot": _light_list, "directional": _light_list,
+               "capsule": _light_list},
     "pipeline": {"passes": _strings, "options": _table, "params": _table, "inputs": _table},
     "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean, "preview": _string},
     "fit": _table,
@@ -341,7 +345,7 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
                 raise ConfigError(f"{source}: pipeline.{section}.{name}: no such pass in pipeline.passes {passes}")
             if not isinstance(value, dict):
                 raise ConfigError(f"{source}: pipeline.{section}.{name}: expected a table")
-    for kind in ("point", "spot", "directional"):
+    for kind in LIGHT_KEYS:
         for i, light in enumerate(config.get("lights", {}).get(kind, [])):
             _check(light, LIGHT_KEYS[kind], f"lights.{kind}[{i}].", source)
     _check_generator_keys(config.get("lights", {}), source)
@@ -361,7 +365,8 @@ def _check_generator_keys(section: dict, source: str):
 
 def _explicit_lights(section: dict, source: str):
     groups = []
-    kinds = {"point": lights_module.POINT, "spot": lights_module.SPOT, "directional": lights_module.DIRECTIONAL}
+    kinds = {"point": lights_module.POINT, "spot": lights_module.SPOT, "directional": lights_module.DIRECTIONAL,
+             "capsule": lights_module.CAPSULE}
     for kind, code in kinds.items():
         entries = section.get(kind, [])
         if not entries:
@@ -376,6 +381,7 @@ def _explicit_lights(section: dict, source: str):
                 range=[e.get("range", 10.0) for e in entries],
                 inner_angle_degrees=[e.get("inner_angle_degrees", 30.0) for e in entries],
                 outer_angle_degrees=[e.get("outer_angle_degrees", 45.0) for e in entries],
+                length=[e.get("length", 0.0) for e in entries],
             ))
         except ValueError as error:
             raise ConfigError(f"{source}: lights.{kind}: {error}") from None

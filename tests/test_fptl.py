@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpupro.scene import POINT, SPOT, make_lights, no_lights
+from gpupro.scene import CAPSULE, POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.fptl import build_light_lists, shade_fptl
+from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, shade_fptl
 from gpupro.techniques.lights.tiled import shade_tiled, to_tiles
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
@@ -43,7 +43,7 @@ def test_fptl_equals_brute_force_and_prunes_only_what_reaches_nothing(name):
     coarse = float(counters["coarse_lighting_computations"])
     assert exact == truly_reaching(lights)
     assert exact <= lighting <= coarse
-    listed = sum(int(counters[f"{t}_lights_listed"]) for t in ("point", "spot", "other"))
+    listed = sum(int(counters[f"{t}_lights_listed"]) for t in LIGHT_TYPES)
     assert int(counters["lights_pruned"]) >= 0 and (listed > 0) == (lighting > 0)
 
 
@@ -56,16 +56,16 @@ def test_pruned_lists_are_exact_per_tile_and_sorted_by_type():
     points = to_tiles(jnp.asarray(GBUFFER["position"]), tile=TILE)
     covered = np.asarray(to_tiles(jnp.asarray(GBUFFER["coverage"]) > 0, tile=TILE))
     kind = np.asarray(lights.kind)
-    rank = np.where(kind == POINT, 0, np.where(kind == SPOT, 1, 2))
+    rank = np.select([kind == POINT, kind == SPOT, kind == CAPSULE], [0, 1, 2], 3)  # the order of LIGHT_TYPES
     for t in range(lists.shape[0]):
         reaching = np.asarray(light_reaches(lights, points[t]))[covered[t]].any(axis=0)
         entries = lists[t][lists[t] >= 0]
         assert (lists[t][len(entries):] == -1).all(), "kept lights first, empty slots after"
         assert sorted(entries) == list(np.flatnonzero(reaching)), "exactly the lights reaching a sample"
         order = list(zip(rank[entries], entries))
-        assert order == sorted(order), "point lights, then spots, then others; by index within a type"
-        assert list(type_counts[t]) == [int(np.sum(rank[entries] == r)) for r in range(3)]
-    assert type_counts.sum(axis=0).min() > 0, "the scene lists every type"
+        assert order == sorted(order), "point lights, then spots, then capsules, then others; by index within a type"
+        assert list(type_counts[t]) == [int(np.sum(rank[entries] == r)) for r in range(len(LIGHT_TYPES))]
+    assert (type_counts.sum(axis=0) > 0).tolist() == [True, True, False, True], "the scene lists every type it has"
 
 
 def small_lights(count=200, seed=1):

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpupro.scene.lights import make_lights
+from gpupro.scene.lights import CAPSULE, POINT, make_lights
 from gpupro.shading.brdfs import view_terms
 from gpupro.shading.light_kernel import fused_accumulate_lights
 from gpupro.shading.light_loop import accumulate_light_lists, accumulate_lights
@@ -29,12 +29,16 @@ def _surfaces(seed=0):
 
 
 def _lights(seed=1):
+    """N lights of the four kinds (point, spot, directional; every other point light a capsule)."""
     rng = np.random.default_rng(seed)
+    kind = rng.integers(0, 3, N)
+    kind[(kind == POINT) & (np.arange(N) % 2 == 1)] = CAPSULE
     direction = rng.normal(size=(N, 3))
-    return make_lights(rng.integers(0, 3, N), position=rng.uniform(-2, 2, (N, 3)),
+    return make_lights(kind, position=rng.uniform(-2, 2, (N, 3)),
                        direction=direction / np.linalg.norm(direction, axis=1, keepdims=True),
                        color=rng.uniform(0, 3, (N, 3)), range=rng.uniform(0.5, 3, N),
-                       inner_angle_degrees=np.full(N, 20.0), outer_angle_degrees=np.full(N, 40.0))
+                       inner_angle_degrees=np.full(N, 20.0), outer_angle_degrees=np.full(N, 40.0),
+                       length=rng.uniform(0.2, 1.5, N))
 
 
 def _fused(points, normals, views, base_color, roughness, metallic, lights):

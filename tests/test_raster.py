@@ -209,6 +209,7 @@ def test_barycentric_derivatives_match_finite_differences():
     np.testing.assert_allclose(dy, fd_y, atol=2e-4)
 
 
+@pytest.mark.slow  # every chunk of the binning loops runs in Python: about 45 s on the 2-core CPU
 def test_jitted_and_not_jitted_agree():
     rng = np.random.default_rng(8)
     clip, faces = random_soup(rng, 6)

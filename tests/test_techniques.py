@@ -11,8 +11,9 @@
 - its reference page lists every option and parameter.
 
 The heavier of these (gradients, jit against eager, reference, capacities) are marked ``slow`` for the
-families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget, and the capacity and gradient
-cases of the :data:`TWINS`; ``pytest -m slow tests/test_techniques.py`` runs them.
+families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget, the capacity and gradient
+cases of the :data:`TWINS` and the eager runs of :data:`EAGER_SLOW`; ``pytest -m slow
+tests/test_techniques.py`` runs them (the GPU machine's whole-suite run includes them).
 """
 
 import dataclasses
@@ -56,6 +57,13 @@ SLOW_FAMILIES = {"media"}
 TWINS = {t.id for t in TECHNIQUES.values() if any(getattr(t.apply, "__wrapped__", None) is o.apply for o in TECHNIQUES.values())}
 """Techniques whose pass wraps another's (the forward twins of :func:`gpupro.techniques.lights.forward.forward_of`):
 their capacities and gradients are the wrapped pass's, so those cases run with ``-m slow`` only."""
+
+
+EAGER_SLOW = {"light_linked_list", "tiled_culling", "tiled_culling_forward", "tiled_forward", "clustered_deferred",
+              "clustered_forward", "fptl", "stalker", "shadow_maps"}
+"""Passes whose op-by-op run compiles every primitive of long per-tile, per-cluster or per-light scan
+bodies one by one (35–90 s each on the 2-core CPU): their jit-against-eager case runs with ``-m slow``
+only. ``deferred`` and ``tiled_deferred`` keep the shared light loop's eager run in the default suite."""
 
 
 def _cases(cases, *, slow=frozenset()):
@@ -189,7 +197,7 @@ def test_parameters_and_light_values_have_correct_gradients(technique_id):
         assert _agree(analytic, _central_difference(loss, values, direction, lights, 1.0)), "light values"
 
 
-@pytest.mark.parametrize("technique_id", _cases(IDS))
+@pytest.mark.parametrize("technique_id", _cases(IDS, slow=EAGER_SLOW))
 def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id):
     pipeline = _example(technique_id)
     params, scene = pipeline.init_params(), SCENES["sphere"]

@@ -3,6 +3,8 @@
 the grid grows, and the temporal blend. The pass runs on synthetic inputs (hdr, depths chosen at slice
 boundaries or at random) over the Cornell box's camera, so no rasterizer is compiled."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -160,3 +162,29 @@ def test_bad_options_are_refused_naming_them(scene):
     with pytest.raises(ValueError, match=r"shadowed_lights: 3 shadowed lights but the scene has 2"):
         vf.apply(_params(), _inputs(np.ones(RES)), scene, None,
                  **validate_options(get("volumetric_fog"), {**GRID, "shadowed_lights": 3}))
+
+
+def test_in_scattering_kernel_equals_the_scan_with_its_gradients():
+    """The one-kernel light sum (Pallas, interpreted on the CPU) equals the XLA scan over chunks of lights,
+    for the four light kinds, and its reverse-mode gradients (g, light colours and positions) are the scan's."""
+    from test_light_kernel import _lights, _surfaces
+
+    points, directions = _surfaces()[:2]
+    lights = _lights()
+    weights = jnp.asarray(np.random.default_rng(3).uniform(0, 1, (points.shape[0], 3)), jnp.float32)
+
+    def loss(g, color, position, fused):
+        chosen = dataclasses.replace(lights, color=color, position=position)
+        total = (vf.fused_scattered_light(points, directions, g, chosen, True) if fused else
+                 vf._scattered_scan(points, directions, g, chosen))
+        return jnp.sum(weights * total)
+
+    args = (jnp.float32(0.4), lights.color, lights.position)
+    assert float(loss(*args, False)) > 1.0  # lights do reach the points
+    np.testing.assert_allclose(float(loss(*args, True)), float(loss(*args, False)), rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(vf.fused_scattered_light(points, directions, 0.4, lights, True)),
+                               np.asarray(vf._scattered_scan(points, directions, 0.4, lights)), rtol=1e-5, atol=1e-6)
+    grad = jax.grad(loss, argnums=(0, 1, 2))
+    for got, expected in zip(grad(*args, True), grad(*args, False)):
+        assert float(jnp.max(jnp.abs(expected))) > 0
+        np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-5, atol=1e-6)

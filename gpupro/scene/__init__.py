@@ -1,7 +1,7 @@
 """Scene model: cameras, meshes, materials, lights, loaders and procedural scenes."""
 
 from gpupro.scene.camera import Camera, make_camera
-from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights, make_lights, no_lights, point_lights
+from gpupro.scene.lights import CAPSULE, DIRECTIONAL, POINT, SPOT, Lights, make_lights, no_lights, point_lights
 from gpupro.scene.materials import Materials, make_materials
 from gpupro.scene.mesh import Mesh, MeshError, concatenate_meshes, make_mesh
 from gpupro.scene.scene import Scene

@@ -1,9 +1,19 @@
-"""Lights as one struct-of-arrays: point, spot and directional lights share one code path.
+"""Lights as one struct-of-arrays: point, spot, directional and capsule lights share one code path.
 
-Each light has a kind (``POINT``, ``SPOT``, ``DIRECTIONAL``), a position (ignored for directional
-lights), a direction (the way the light shines: spot axis, or the direction light travels for a
-directional light), a colour already multiplied by intensity, a range (radius of influence; a
-directional light's range is infinite) and spot cone cosines.
+Each light has a kind (``POINT``, ``SPOT``, ``DIRECTIONAL``, ``CAPSULE``), a position (ignored for
+directional lights), a direction (the way the light shines: spot axis, or the direction light travels
+for a directional light; a capsule's segment axis), a colour already multiplied by intensity, a range
+(radius of influence; a directional light's range is infinite), spot cone cosines and a half-length.
+
+Capsule lights (a shape Mikkelsen's FPTL culls tightly, seed 004: "long narrow spot lights, wedges,
+capsules etc."): the segment from ``position − length·direction`` to ``position + length·direction``
+(``length`` the half-length in world units, ≥ 0), whose influence is the capsule of points within
+``range`` of the segment. A capsule shades a point x as a point light of the same ``color`` (W/sr)
+placed at the segment point nearest to x, q(x) = p + clamp((x − p)·a, −length, length) a, with the
+point light's distance falloff of |x − q(x)| (the representative-point form of Karis 2013, "Real
+Shading in Unreal Engine 4", "Area Lights", not energy-normalised: a longer capsule of the same
+colour is brighter, its intensity being per representative point, not a total). With ``length`` 0
+it is a point light.
 """
 
 from __future__ import annotations
@@ -14,17 +24,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-POINT, SPOT, DIRECTIONAL = 0, 1, 2
+POINT, SPOT, DIRECTIONAL, CAPSULE = 0, 1, 2, 3
+KINDS = (POINT, SPOT, DIRECTIONAL, CAPSULE)
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Lights:
-    """N lights. ``kind`` int32 [N]; ``position`` float32 [N, 3] (world units); ``direction`` float32
-    [N, 3] (unit); ``color`` float32 [N, 3] (intensity × colour: W/sr for point and spot lights,
-    irradiance W/m² for directional lights); ``range`` float32 [N] (world units, ``inf`` for directional);
-    ``cos_inner``, ``cos_outer`` float32 [N] (spot cone: full intensity inside ``cos_inner``, none
-    outside ``cos_outer``)."""
+    """N lights. ``kind`` int32 [N]; ``position`` float32 [N, 3] (world units; a capsule's segment
+    centre); ``direction`` float32 [N, 3] (unit); ``color`` float32 [N, 3] (intensity × colour: W/sr
+    for point, spot and capsule lights, irradiance W/m² for directional lights); ``range`` float32 [N]
+    (world units, ``inf`` for directional; around the segment for capsules); ``cos_inner``,
+    ``cos_outer`` float32 [N] (spot cone: full intensity inside ``cos_inner``, none outside
+    ``cos_outer``); ``length`` float32 [N] (a capsule's half-length along ``direction``, world units
+    ≥ 0; 0 for the other kinds)."""
 
     kind: jax.Array
     position: jax.Array
@@ -33,6 +46,7 @@ class Lights:
     range: jax.Array
     cos_inner: jax.Array
     cos_outer: jax.Array
+    length: jax.Array
 
     @property
     def count(self) -> int:
@@ -48,17 +62,20 @@ def make_lights(
     range=None,
     inner_angle_degrees=None,
     outer_angle_degrees=None,
+    length=None,
 ) -> Lights:
     """Builds validated :class:`Lights` (host side) from per-light values; N = len(kind).
 
-    ``kind`` [N] of POINT/SPOT/DIRECTIONAL; ``position``, ``direction``, ``color`` [N, 3];
+    ``kind`` [N] of POINT/SPOT/DIRECTIONAL/CAPSULE; ``position``, ``direction``, ``color`` [N, 3];
     ``range`` [N] finite and > 0 (ignored for directional lights); spot cone half-angles in degrees
-    with 0 <= inner <= outer < 90.
+    with 0 <= inner <= outer < 90; ``length`` [N] capsule half-lengths, finite and >= 0 (default 0;
+    ignored, i.e. 0, for the other kinds).
     """
     k = np.atleast_1d(np.asarray(kind, np.int32))
     n = k.shape[0]
-    if not np.isin(k, (POINT, SPOT, DIRECTIONAL)).all():
-        raise ValueError(f"lights: kind must be POINT (0), SPOT (1) or DIRECTIONAL (2), got {sorted(set(k.tolist()))}")
+    if not np.isin(k, KINDS).all():
+        raise ValueError("lights: kind must be POINT (0), SPOT (1), DIRECTIONAL (2) or CAPSULE (3), "
+                         f"got {sorted(set(k.tolist()))}")
 
     def vec(value, default, name):
         arr = np.broadcast_to(np.asarray(default if value is None else value, np.float32), (n, 3)).copy()
@@ -68,21 +85,24 @@ def make_lights(
 
     pos = vec(position, (0.0, 0.0, 0.0), "position")
     dirs = vec(direction, (0.0, -1.0, 0.0), "direction")
-    length = np.linalg.norm(dirs, axis=1, keepdims=True)
-    if (length == 0).any():
+    norm = np.linalg.norm(dirs, axis=1, keepdims=True)
+    if (norm == 0).any():
         raise ValueError("lights: direction must be non-zero")
-    dirs = dirs / length
+    dirs = dirs / norm
     col = vec(color, (1.0, 1.0, 1.0), "color")
     if (col < 0).any():
         raise ValueError("lights: color must be non-negative")
     rng = np.broadcast_to(np.asarray(10.0 if range is None else range, np.float32), (n,)).copy()
     rng = np.where(k == DIRECTIONAL, np.inf, rng).astype(np.float32)
     if not (np.isfinite(rng[k != DIRECTIONAL]) & (rng[k != DIRECTIONAL] > 0)).all():
-        raise ValueError("lights: range must be finite and > 0 for point and spot lights")
+        raise ValueError("lights: range must be finite and > 0 for point, spot and capsule lights")
     inner = np.broadcast_to(np.asarray(30.0 if inner_angle_degrees is None else inner_angle_degrees, np.float32), (n,))
     outer = np.broadcast_to(np.asarray(45.0 if outer_angle_degrees is None else outer_angle_degrees, np.float32), (n,))
     if ((inner < 0) | (inner > outer) | (outer >= 90)).any():
         raise ValueError("lights: spot cones need 0 <= inner_angle <= outer_angle < 90 degrees")
+    half = np.broadcast_to(np.asarray(0.0 if length is None else length, np.float32), (n,))
+    if not (np.isfinite(half) & (half >= 0)).all():
+        raise ValueError("lights: length (a capsule's half-length) must be finite and >= 0")
     return Lights(
         kind=jnp.asarray(k),
         position=jnp.asarray(pos),
@@ -91,6 +111,7 @@ def make_lights(
         range=jnp.asarray(rng),
         cos_inner=jnp.asarray(np.cos(np.radians(inner)), jnp.float32),
         cos_outer=jnp.asarray(np.cos(np.radians(outer)), jnp.float32),
+        length=jnp.asarray(np.where(k == CAPSULE, half, 0.0), jnp.float32),
     )
 
 

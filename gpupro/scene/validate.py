@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from gpupro.scene.camera import PROJECTIONS, matrix_problem
-from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT
+from gpupro.scene.lights import CAPSULE, DIRECTIONAL, KINDS, POINT, SPOT
 from gpupro.scene.materials import range_problem
 
 _UNIT_TOLERANCE = 1e-3  # |‖direction‖ − 1| allowed: shading uses light directions as given, unnormalised
@@ -28,9 +28,11 @@ def check_scene(scene) -> None:
     Checks, on concrete (non-traced) arrays: the mesh (shapes, finite positions, normals and uv, face
     indices in range, non-zero normals, material ids below the material count); the materials (the
     ranges of :data:`gpupro.scene.materials.RANGES`, texture indices, finite texels); the lights (kind
-    POINT, SPOT or DIRECTIONAL; finite positions of point and spot lights; finite non-zero directions,
-    of unit length where used; finite colours >= 0; finite range > 0 for point and spot lights, > 0 or
-    inf for directional ones; cone cosines in [-1, 1] with cos_inner >= cos_outer for spot lights);
+    POINT, SPOT, DIRECTIONAL or CAPSULE; finite positions of point, spot and capsule lights; finite
+    non-zero directions, of unit length where used (spot, directional and capsule lights); finite
+    colours >= 0; finite range > 0 for point, spot and capsule lights, > 0 or inf for directional ones;
+    cone cosines in [-1, 1] with cos_inner >= cos_outer for spot lights; a finite length >= 0 for
+    capsules, 0 for the other kinds);
     the camera (finite eye, target, up; 0 < near < far; a field of view or height in range; view,
     projection and view-projection matrices finite in float32).
     """
@@ -110,15 +112,17 @@ def _material_problems(materials):
 
 
 def _light_problems(lights):
-    a = _arrays(lights, ("kind", "position", "direction", "color", "range", "cos_inner", "cos_outer"))
+    a = _arrays(lights, ("kind", "position", "direction", "color", "range", "cos_inner", "cos_outer", "length"))
     n = len(a["kind"])
-    shapes = {"kind": (n,), "position": (n, 3), "direction": (n, 3), "color": (n, 3), "range": (n,), "cos_inner": (n,), "cos_outer": (n,)}
+    shapes = {"kind": (n,), "position": (n, 3), "direction": (n, 3), "color": (n, 3), "range": (n,), "cos_inner": (n,),
+              "cos_outer": (n,), "length": (n,)}
     yield from _shape_problems(a, shapes)
     kind = a["kind"]
-    unknown = ~np.isin(kind, (POINT, SPOT, DIRECTIONAL))
+    unknown = ~np.isin(kind, KINDS)
     if unknown.any():
         i = int(np.argmax(unknown))
-        yield "kind", f"light {i} has kind {kind[i]}; allowed: POINT ({POINT}), SPOT ({SPOT}), DIRECTIONAL ({DIRECTIONAL})"
+        yield "kind", (f"light {i} has kind {kind[i]}; allowed: POINT ({POINT}), SPOT ({SPOT}), DIRECTIONAL "
+                       f"({DIRECTIONAL}), CAPSULE ({CAPSULE})")
     local = kind != DIRECTIONAL
     if problem := _not_finite(a["position"], "light", where=local):
         yield "position", problem
@@ -131,7 +135,8 @@ def _light_problems(lights):
     not_unit = (kind != POINT) & (np.abs(length - 1.0) > _UNIT_TOLERANCE)
     if not_unit.any():
         i = int(np.argmax(not_unit))
-        yield "direction", f"light {i} has a direction of length {length[i]:g}; spot and directional lights need unit directions"
+        yield "direction", (f"light {i} has a direction of length {length[i]:g}; spot, directional and capsule "
+                            "lights need unit directions")
     negative = (a["color"] < 0).any(axis=1)
     if negative.any():
         yield "color", f"light {int(np.argmax(negative))} has a negative value; allowed: >= 0"
@@ -139,8 +144,15 @@ def _light_problems(lights):
     bad = np.where(local, ~np.isfinite(reach), np.isnan(reach)) | ~(reach > 0)
     if bad.any():
         i = int(np.argmax(bad))
-        allowed = "finite and > 0 for point and spot lights" if local[i] else "> 0 (inf is usual) for directional lights"
+        allowed = "finite and > 0 for point, spot and capsule lights" if local[i] else "> 0 (inf is usual) for directional lights"
         yield "range", f"light {i} has range {reach[i]:g}; allowed: {allowed}"
+    half = a["length"]
+    bad = ~(np.isfinite(half) & (half >= 0)) | ((kind != CAPSULE) & (half != 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        allowed = ("finite and >= 0 (a capsule's half-length)" if kind[i] == CAPSULE
+                   else "0 (only capsule lights have a length)")
+        yield "length", f"light {i} has length {half[i]:g}; allowed: {allowed}"
     for field in ("cos_inner", "cos_outer"):
         out = ~((a[field] >= -1.0) & (a[field] <= 1.0))
         if out.any():

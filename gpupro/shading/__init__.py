@@ -25,9 +25,19 @@ from gpupro.shading.light_falloff import (
     SPOT_MIN_COS_WIDTH,
     distance_falloff,
     incident_light,
+    nearest_on_segment,
+    representative_points,
     spot_falloff,
 )
-from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, sphere_meets_light, transform_lights
+from gpupro.shading.light_bounds import (
+    SLACK,
+    box_meets_light,
+    light_boxes,
+    light_spheres,
+    segment_box_distance,
+    sphere_meets_light,
+    transform_lights,
+)
 from gpupro.shading.light_loop import (
     accumulate_light_lists,
     accumulate_lights,

@@ -2,13 +2,16 @@
 
 Every many-light technique culls lights against some volume of samples (a screen tile's frustum, a
 cluster's box, a tile's depth slab). These tests are shared so that all of them cull spot lights as
-cones rather than as bounding spheres (Olsson's thesis treats every light as a sphere; GPU Pro 6 VI.1
-tests spheres only), and all of them err on the side of keeping a light.
+cones and capsule lights as capsules rather than as bounding spheres (Olsson's thesis treats every
+light as a sphere; GPU Pro 6 VI.1 tests spheres only), and all of them err on the side of keeping a
+light.
 
 A light's influence (where :func:`gpupro.shading.light_loop.light_reaches` is true):
 - point light at p with range r: the ball |x − p| < r;
 - spot light of apex p, unit axis a, outer half-angle θ < 90°, range r: the spherical sector
   {x : |x − p| < r, angle(x − p, a) < θ};
+- capsule light of centre p, unit axis a, half-length ℓ, range r: the capsule {x : |x − q(x)| < r},
+  q(x) = p + clamp((x − p)·a, −ℓ, ℓ) a the nearest point of the segment [p − ℓa, p + ℓa];
 - directional light: everything.
 
 Sphere (centre c, radius R) against a spot's sector, with V = c − p, s = V·a, q = |V − s a| (the cone
@@ -18,9 +21,19 @@ test of Wronski, "Cull that cone!", 2016): the sphere misses the sector when any
     q cos θ − s sin θ > R            (outside the infinite cone)
 holds. The third is the distance from c to the supporting plane of the (convex, θ < 90°) cone along
 the generator nearest to c, which never exceeds the distance to the cone, so the test never culls a
-sphere that meets the sector. Box against a light: Arvo's squared distance from the light's position
-to the box against r² (exact for point lights), and, for spots, the cone test on the box's
-bounding sphere.
+sphere that meets the sector. A sphere meets a capsule exactly when |c − q(c)| < R + r (the same
+test as a point light's, with q(c) for p). Box against a light: Arvo's squared distance from the
+light's position to the box against r² (exact for point lights), and, for spots, the cone test on the
+box's bounding sphere. Box against a capsule, exactly: the distance between the segment and the box,
+    D = min_{|t| ≤ ℓ} |e(t)|,   e(t) = x(t) − clamp(x(t), lower, upper),   x(t) = p + t a,
+against r. g(t) = |e(t)|² is convex and piecewise quadratic (e is the residual of the projection onto
+a convex set), with breakpoints where a coordinate of x(t) crosses a face, t = (face_k − p_k) / a_k;
+its slope g'(t) = 2 e(t)·a is non-decreasing and linear between breakpoints. So the minimiser is −ℓ
+where g'(−ℓ) ≥ 0, ℓ where g'(ℓ) ≤ 0, and otherwise the zero of g' on the interval between consecutive
+breakpoints where it changes sign, found by linear interpolation (exact on that interval). Because g'
+is monotone, that interval runs from the largest candidate (breakpoints and ±ℓ) with g' < 0 to the
+smallest with g' ≥ 0, a masked max and min: no sort, so XLA fuses the test into the pair loop (a sort
+made clustered light assignment at 10⁶ lights 3.7× slower on an H200).
 
 Conservativeness under rounding: radii are widened by ``SLACK`` (relative to the distances involved)
 before each comparison, so a sample on a volume's boundary is never lost to float error.
@@ -32,8 +45,9 @@ import math
 
 import jax.numpy as jnp
 
-from gpupro.numerics import einsum
-from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
+from gpupro.numerics import dot3, einsum
+from gpupro.scene.lights import CAPSULE, DIRECTIONAL, SPOT, Lights
+from gpupro.shading.light_falloff import representative_points
 
 SLACK = 1e-5
 """Relative widening of every bound before it is compared (keeps boundary samples under rounding)."""
@@ -47,7 +61,8 @@ def light_spheres(lights: Lights):
     Point lights: the range sphere. Spot lights of outer half-angle θ and range r: the smallest sphere
     centred on the axis at p + c·a that holds the sector, R = max(c, √(r² + c² − 2rc cos θ)), minimal at
         θ ≤ 45°: c = R = r / (2 cos θ);      θ > 45°: c = r cos θ, R = r sin θ
-    (R < r always). Directional lights get radius ``inf`` (callers treat them as covering everything).
+    (R < r always). Capsules of half-length ℓ: centre p, R = ℓ + r. Directional lights get radius
+    ``inf`` (callers treat them as covering everything).
     """
     cos_outer = lights.cos_outer
     sin_outer = jnp.sqrt(jnp.maximum(1.0 - cos_outer * cos_outer, 0.0))
@@ -56,18 +71,65 @@ def light_spheres(lights: Lights):
     spot_radius = jnp.where(wide, lights.range * sin_outer, offset)
     spot = lights.kind == SPOT
     centre = lights.position + jnp.where(spot, offset, 0.0)[:, None] * lights.direction
-    radius = jnp.where(spot, spot_radius, lights.range)
+    radius = jnp.where(spot, spot_radius, lights.range + lights.length)  # length is 0 but for capsules
     return centre, jnp.where(lights.kind == DIRECTIONAL, jnp.inf, radius)
+
+
+def light_boxes(lights: Lights):
+    """Axis-aligned boxes holding the lights' influence, as ``(centre [N, 3], half [N, 3])`` (world
+    units; the box is centre ± half): the box of the bounding sphere (:func:`light_spheres`) of point and
+    spot lights, infinite (``half`` = inf, finite centre) for directional ones, and for a capsule its own
+    box p ± (ℓ |a| + r) per axis (tighter than its sphere's)."""
+    centre, radius = light_spheres(lights)
+    capsule_half = lights.length[:, None] * jnp.abs(lights.direction) + lights.range[:, None]
+    return centre, jnp.where((lights.kind == CAPSULE)[:, None], capsule_half, radius[:, None])
 
 
 def transform_lights(lights: Lights, matrix) -> Lights:
     """The lights moved by a rigid transform ``matrix`` [4, 4] (e.g. a camera's view matrix, for
-    view-space culling): positions as points, directions as vectors; ranges and cones unchanged."""
+    view-space culling): positions as points, directions as vectors; ranges, cones and capsule
+    lengths unchanged."""
     matrix = jnp.asarray(matrix, jnp.float32)
     position = einsum("ij,nj->ni", matrix[:3, :3], lights.position) + matrix[:3, 3]
     direction = einsum("ij,nj->ni", matrix[:3, :3], lights.direction)
     return Lights(kind=lights.kind, position=position, direction=direction, color=lights.color,
-                  range=lights.range, cos_inner=lights.cos_inner, cos_outer=lights.cos_outer)
+                  range=lights.range, cos_inner=lights.cos_inner, cos_outer=lights.cos_outer, length=lights.length)
+
+
+def _box_residual(x, lower, upper):
+    """x − clamp(x, lower, upper) (broadcast [..., 3]): the offset from a box to points."""
+    return x - jnp.clip(x, lower, upper)
+
+
+def segment_box_distance(lower, upper, position, direction, length):
+    """Distance (world units) between segments {p + t a : |t| ≤ ℓ} and axis-aligned boxes, by the exact
+    minimisation of the module docstring; for ℓ = 0, Arvo's point–box distance.
+
+    ``lower``, ``upper`` [..., 3] box corners; ``position`` p, ``direction`` a (unit) [..., 3];
+    ``length`` ℓ [...] ≥ 0; all broadcast together. Returns [...].
+    """
+    shape = jnp.broadcast_shapes(lower.shape, upper.shape, position.shape, direction.shape, length.shape + (3,))
+    lower, upper, position, direction = (jnp.broadcast_to(x, shape) for x in (lower, upper, position, direction))
+    length = jnp.broadcast_to(length, shape[:-1])[..., None]
+    moving = direction != 0.0
+    step = jnp.where(moving, direction, 1.0)
+    # Where a coordinate crosses a face (an axis the segment does not move along has none: −ℓ stands in).
+    crossings = jnp.concatenate([jnp.where(moving, (lower - position) / step, -length),
+                                 jnp.where(moving, (upper - position) / step, -length), -length, length], axis=-1)
+    t = jnp.clip(crossings, -length, length)  # [..., 8] candidates, unsorted
+    slope_of = lambda t, p, a, lo, hi: dot3(_box_residual(p + t[..., None] * a, lo, hi), a)  # g'(t) / 2
+    each = lambda x: x[..., None, :]
+    slope = slope_of(t, each(position), each(direction), each(lower), each(upper))
+    # g' is non-decreasing: the minimiser lies between the last candidate of negative slope and the next one.
+    falling = slope < 0.0
+    t0 = jnp.max(jnp.where(falling, t, -length), axis=-1)
+    t1 = jnp.min(jnp.where(falling, length, t), axis=-1)
+    s0, s1 = (slope_of(t_k, position, direction, lower, upper) for t_k in (t0, t1))
+    rising = (s0 < 0.0) & (s1 >= 0.0)
+    fraction = jnp.where(rising, -s0 / jnp.where(rising, s1 - s0, 1.0), jnp.where(s1 < 0.0, 1.0, 0.0))
+    best = t0 + fraction * (t1 - t0)
+    gap = _box_residual(position + best[..., None] * direction, lower, upper)
+    return jnp.sqrt(dot3(gap, gap))
 
 
 def _outside_cone(centre, radius, lights: Lights):
@@ -86,15 +148,16 @@ def sphere_meets_light(centre, radius, lights: Lights):
     """Whether each of M spheres may meet each of N lights' influence: bool [M, N].
 
     ``centre`` [M, 3], ``radius`` [M] (≥ 0, in the lights' space and units). False only where the
-    sphere certainly misses the light's ball (point), sector (spot) or never for directional lights
-    (module docstring), so a culled light reaches no point of the sphere.
+    sphere certainly misses the light's ball (point), sector (spot), capsule (exact: the distance from
+    the centre to the segment), or never for directional lights (module docstring), so a culled light
+    reaches no point of the sphere.
     """
     centre = jnp.asarray(centre, jnp.float32)
     radius = jnp.asarray(radius, jnp.float32)
-    offset = centre[:, None, :] - lights.position[None]
-    distance = jnp.sqrt(jnp.sum(offset * offset, axis=-1))
+    offset = centre[:, None, :] - representative_points(lights, centre)
+    distance = jnp.sqrt(dot3(offset, offset))
     reach = radius[:, None] + lights.range[None]
-    in_ball = distance <= reach + SLACK * (reach + distance)
+    in_ball = distance <= reach + SLACK * (reach + distance + lights.length[None])
     in_cone = ~_outside_cone(centre, radius, lights)
     spot = (lights.kind == SPOT)[None]
     return (lights.kind == DIRECTIONAL)[None] | (in_ball & (~spot | in_cone))
@@ -105,14 +168,14 @@ def box_meets_light(lower, upper, lights: Lights):
 
     ``lower``, ``upper`` [M, 3] box corners, lower ≤ upper (in the lights' space and units; callers
     mask empty volumes themselves). Point lights: Arvo's distance test (exact); spots: that, and the
-    cone test on the box's bounding sphere; directional: always.
+    cone test on the box's bounding sphere; capsules: the segment–box distance (exact, module
+    docstring); directional: always.
     """
     lower = jnp.asarray(lower, jnp.float32)
     upper = jnp.asarray(upper, jnp.float32)
-    nearest = jnp.clip(lights.position[None], lower[:, None, :], upper[:, None, :])
-    gap = nearest - lights.position[None]
-    distance = jnp.sqrt(jnp.sum(gap * gap, axis=-1))
-    in_ball = distance <= lights.range[None] * (1.0 + SLACK) + SLACK * distance
+    distance = segment_box_distance(lower[:, None, :], upper[:, None, :], lights.position[None],
+                                    lights.direction[None], lights.length[None])
+    in_ball = distance <= lights.range[None] * (1.0 + SLACK) + SLACK * (distance + lights.length[None])
     centre = 0.5 * (lower + upper)
     radius = 0.5 * jnp.linalg.norm(upper - lower, axis=-1)
     in_cone = ~_outside_cone(centre, radius, lights)

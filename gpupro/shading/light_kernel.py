@@ -14,12 +14,13 @@ way a pixel shader runs the loop, on blocks [pixels, 1] × [1, lights].
 Shared code. Triton blocks cannot have a last axis of 3, so the kernel holds vectors as three component
 arrays. The per-light arithmetic is the XLA path's, term for term (:func:`gpupro.shading.light_falloff.
 incident_light`, then the specular lobe of :func:`gpupro.shading.brdfs.brdf_towards`): every scalar
-function in it (distance and spot falloff, the GGX distribution and visibility, Schlick's Fresnel) and
-the light-independent view terms are the same functions; only the vector glue (distances, the half
-vector, dot products) is written on components here. The array path is not written on components
-too because XLA fuses that form worse: measured on an H200, it made brute force 1.5× and clustered
-shading 3.4× slower. tests/test_light_kernel.py checks the two agree. GGX only: Triton lowers no erfc,
-which the Beckmann visibility needs.
+function in it (distance and spot falloff, the GGX distribution and visibility, Schlick's Fresnel), a
+capsule's nearest segment point (:func:`gpupro.shading.light_falloff.nearest_on_segment`, written on
+components for both paths) and the light-independent view terms are the same functions; only the
+vector glue (distances, the half vector, dot products) is written on components here. The array path
+is not written on components too because XLA fuses that form worse: measured on an H200, it made brute
+force 1.5× and clustered shading 3.4× slower. tests/test_light_kernel.py checks the two agree. GGX
+only: Triton lowers no erfc, which the Beckmann visibility needs.
 
 Gradients: the kernel has no derivative of its own. :func:`fused_accumulate_lights` is a custom VJP
 whose backward pass is the derivative of the XLA scan (recomputed), so fitting through it works.
@@ -38,12 +39,12 @@ from jax.experimental import pallas as pl
 
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
-from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, spot_falloff
+from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, nearest_on_segment, spot_falloff
 from gpupro.shading.light_loop import light_radiance, pad_lights, sum_over_lights
 
 _TERMS_SCALAR = ("n_dot_v", "alpha", "visibility_v")
 _TERMS_VECTOR = ("n", "v", "f0", "diffuse")
-_LIGHTS_SCALAR = ("kind", "range", "cos_inner", "cos_outer")
+_LIGHTS_SCALAR = ("kind", "range", "cos_inner", "cos_outer", "length")
 _LIGHTS_VECTOR = ("position", "direction", "color")
 _PIXEL_ARRAYS = 3 + len(_TERMS_SCALAR) + 3 * len(_TERMS_VECTOR)
 
@@ -69,7 +70,7 @@ def _pixel_arrays(points, terms: dict, padded: int) -> list:
 
 
 def _light_arrays(lights: Lights) -> list:
-    """The 13 per-light arrays [N] the kernel reads (``kind`` int32, the rest float32)."""
+    """The 14 per-light arrays [N] the kernel reads (``kind`` int32, the rest float32)."""
     parts = [getattr(lights, name) for name in _LIGHTS_SCALAR]
     for name in _LIGHTS_VECTOR:
         parts += _components(getattr(lights, name))
@@ -80,18 +81,39 @@ def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _radiance(point, terms: dict, light: dict):
-    """brdf · E⊥ · max(n·l, 0) (R, G, B) of broadcastable component blocks, as
-    :func:`gpupro.shading.light_loop.light_radiance` computes it (see the module docstring)."""
+def _light_of(row: list) -> dict:
+    """A light's component blocks by name from its per-light arrays in :func:`_light_arrays` order."""
+    scalars = len(_LIGHTS_SCALAR)
+    light = dict(zip(_LIGHTS_SCALAR, row[:scalars]))
+    for k, name in enumerate(_LIGHTS_VECTOR):
+        light[name] = tuple(row[scalars + 3 * k:scalars + 3 * k + 3])
+    return light
+
+
+def _source(point, light: dict):
+    """The light's representative point q(x) (its position, or a capsule's nearest segment point)."""
+    return nearest_on_segment(point, light["position"], light["direction"], light["length"])
+
+
+def incident_components(point, light: dict):
+    """The incident light of :func:`gpupro.shading.light_falloff.incident_light` on broadcastable component
+    blocks: ``(to_light, scale)``, the unit direction towards the light (three blocks) and the factor with
+    E⊥ = scale · colour (distance and spot falloff; 1 for directional lights). ``light``: component blocks
+    by name (:data:`_LIGHTS_SCALAR`, :data:`_LIGHTS_VECTOR`)."""
     directional = light["kind"] == DIRECTIONAL
-    delta = tuple(p - x for p, x in zip(light["position"], point))
+    delta = tuple(q - x for q, x in zip(_source(point, light), point))
     distance = jnp.sqrt(jnp.maximum(_dot(delta, delta), _DISTANCE_SQ_MIN))
     to_point_light = tuple(d / distance for d in delta)
     to_light = tuple(jnp.where(directional, -d, t) for d, t in zip(light["direction"], to_point_light))
     attenuation = distance_falloff(distance, jnp.where(directional, 1.0, light["range"]))
     cone = spot_falloff(-_dot(to_point_light, light["direction"]), light["cos_inner"], light["cos_outer"])
-    scale = jnp.where(directional, 1.0, attenuation * jnp.where(light["kind"] == SPOT, cone, 1.0))
+    return to_light, jnp.where(directional, 1.0, attenuation * jnp.where(light["kind"] == SPOT, cone, 1.0))
 
+
+def _radiance(point, terms: dict, light: dict):
+    """brdf · E⊥ · max(n·l, 0) (R, G, B) of broadcastable component blocks, as
+    :func:`gpupro.shading.light_loop.light_radiance` computes it (see the module docstring)."""
+    to_light, scale = incident_components(point, light)
     n_dot_l = _dot(terms["n"], to_light)
     lit = (n_dot_l > 0) & (terms["n_dot_v"] > 0)
     half = tuple(a + b for a, b in zip(terms["v"], to_light))
@@ -105,44 +127,62 @@ def _radiance(point, terms: dict, light: dict):
                  for d, f0, c in zip(terms["diffuse"], terms["f0"], light["color"]))
 
 
-def _kernel(*refs, n_steps: int, lights_per_step: int):
-    pixel_refs, light_refs, out_refs = refs[:_PIXEL_ARRAYS], refs[_PIXEL_ARRAYS:-3], refs[-3:]
-    column = [r[...][:, None] for r in pixel_refs]  # [B, 1]: broadcast against [1, lights_per_step]
+def _surface_term(column: list, light: dict):
+    """:func:`_radiance` of the :func:`_pixel_arrays` columns (position, then the view terms)."""
     point = tuple(column[:3])
     terms = dict(zip(_TERMS_SCALAR, column[3:6]))
     for k, name in enumerate(_TERMS_VECTOR):
         terms[name] = tuple(column[6 + 3 * k:9 + 3 * k])
+    return _radiance(point, terms, light)
+
+
+def _kernel(*refs, n_columns: int, n_steps: int, lights_per_step: int, term):
+    column_refs, light_refs, out_refs = refs[:n_columns], refs[n_columns:-3], refs[-3:]
+    column = [r[...][:, None] for r in column_refs]  # [B, 1]: broadcast against [1, lights_per_step]
 
     def step(i, total):
-        row = [r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in light_refs]  # [1, L]
-        light = dict(zip(_LIGHTS_SCALAR, row[:4]))
-        for k, name in enumerate(_LIGHTS_VECTOR):
-            light[name] = tuple(row[4 + 3 * k:7 + 3 * k])
-        rgb = _radiance(point, terms, light)
+        light = _light_of([r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in light_refs])  # [1, L]
+        rgb = term(column, light)
         return tuple(t + jnp.sum(c, axis=1) for t, c in zip(total, rgb))
 
-    zeros = jnp.zeros((pixel_refs[0].shape[0],), jnp.float32)
+    zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
     total = jax.lax.fori_loop(0, n_steps, step, (zeros, zeros, zeros))
     for ref, value in zip(out_refs, total):
         ref[...] = value
 
 
-def _run_kernel(points, terms: dict, lights: Lights, *, block_pixels: int, lights_per_step: int, interpret: bool):
-    n_points = points.shape[0]
+def light_sums(columns: list, lights: Lights, term, *, block_pixels: int = BLOCK_PIXELS,
+               lights_per_step: int = LIGHTS_PER_STEP, interpret: bool = False):
+    """Σ over all N ≥ 1 lights of ``term(column, light)`` at P points, as one kernel over blocks of points:
+    each program keeps its points' columns and running sums in registers and walks the lights.
+
+    ``columns``: per-point float32 arrays [P] (positions and whatever the term reads, as components);
+    ``term``: a function of the columns' blocks [B, 1] and a light's component blocks [1, L] by name
+    (:func:`_light_of`; padding lights have zero colour) → (R, G, B) blocks [B, L]; ``block_pixels``,
+    ``lights_per_step`` powers of two; ``interpret``: Pallas' interpreter (any backend). Returns [P, 3].
+    Not differentiable by itself.
+    """
+    n_points = columns[0].shape[0]
     padded = -(-n_points // block_pixels) * block_pixels
     n_steps = -(-lights.count // lights_per_step)
     lights = pad_lights(lights, count=n_steps * lights_per_step - lights.count)
-    pixel_arrays, light_arrays = _pixel_arrays(points, terms, padded), _light_arrays(lights)
+    columns = [jnp.pad(jnp.asarray(c, jnp.float32), (0, padded - n_points)) for c in columns]
+    light_arrays = _light_arrays(lights)
     pixel_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
     out = pl.pallas_call(
-        functools.partial(_kernel, n_steps=n_steps, lights_per_step=lights_per_step),
+        functools.partial(_kernel, n_columns=len(columns), n_steps=n_steps, lights_per_step=lights_per_step, term=term),
         out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * 3,
         grid=(padded // block_pixels,),
-        in_specs=[pixel_spec] * len(pixel_arrays) + [pl.BlockSpec(a.shape, lambda i: (0,)) for a in light_arrays],
+        in_specs=[pixel_spec] * len(columns) + [pl.BlockSpec(a.shape, lambda i: (0,)) for a in light_arrays],
         out_specs=[pixel_spec] * 3,
         interpret=interpret,
-    )(*pixel_arrays, *light_arrays)
+    )(*columns, *light_arrays)
     return jnp.stack(out, axis=-1)[:n_points]
+
+
+def _run_kernel(points, terms: dict, lights: Lights, *, block_pixels: int, lights_per_step: int, interpret: bool):
+    return light_sums(_pixel_arrays(points, terms, points.shape[0]), lights, _surface_term, block_pixels=block_pixels,
+                      lights_per_step=lights_per_step, interpret=interpret)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4, 5))
@@ -183,8 +223,8 @@ fused_accumulate_lights.defvjp(_forward, _backward)
 
 def _reaches(point, light: dict):
     """:func:`gpupro.shading.light_loop.light_reaches` on component blocks: whether the light's influence
-    truly reaches the point (in range, and strictly inside a spot's outer cone)."""
-    delta = tuple(x - p for x, p in zip(point, light["position"]))
+    truly reaches the point (in range of its representative point, and strictly inside a spot's outer cone)."""
+    delta = tuple(x - q for x, q in zip(point, _source(point, light)))
     distance_sq = _dot(delta, delta)
     in_range = distance_sq < light["range"] * light["range"]
     along_axis = _dot(delta, light["direction"])
@@ -205,10 +245,7 @@ def _list_kernel(*refs, n_lights: int, capacity: int):
 
     def step(j, carry):
         index = slots_ref[first_slot + j]  # [B] gathered light indices (n_lights: the zero light)
-        row = [r[index] for r in light_refs]
-        light = dict(zip(_LIGHTS_SCALAR, row[:4]))
-        for k, name in enumerate(_LIGHTS_VECTOR):
-            light[name] = tuple(row[4 + 3 * k:7 + 3 * k])
+        light = _light_of([r[index] for r in light_refs])
         rgb = _radiance(point, terms, light)
         reached = _reaches(point, light) & (index < n_lights)
         return tuple(t + c for t, c in zip(carry[:3], rgb)) + (carry[3] + reached.astype(jnp.float32),)

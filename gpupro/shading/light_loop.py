@@ -37,7 +37,7 @@ import numpy as np
 from gpupro.numerics import dot3
 from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights
 from gpupro.shading.brdfs import DISTRIBUTIONS, brdf_towards, view_terms
-from gpupro.shading.light_falloff import incident_light
+from gpupro.shading.light_falloff import incident_light, representative_points
 
 _VIEW_LENGTH_MIN = 1e-12  # floor under |e − x| so v is finite when a point sits at the eye
 
@@ -54,6 +54,7 @@ def pad_lights(lights: Lights, *, count: int) -> Lights:
         range=pad(lights.range, 1.0),
         cos_inner=pad(lights.cos_inner, 1.0),
         cos_outer=pad(lights.cos_outer, 0.0),
+        length=pad(lights.length, 0.0),
     )
 
 
@@ -134,14 +135,14 @@ def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_c
     return total
 
 
-def _light_loop(light_loop: str, shadow, distribution: str, caller: str) -> str:
-    """``light_loop`` resolved to "scan" or "kernel": "auto" takes the kernel on GPUs where it applies (GGX,
-    no shadow factors); an explicit "kernel" where it does not is an error naming ``caller``."""
-    applies = shadow is None and distribution == "ggx"
+def resolve_light_loop(*, light_loop: str, applies: bool, caller: str) -> str:
+    """``light_loop`` ("auto", "scan" or "kernel") resolved to "scan" or "kernel": "auto" takes the kernel on
+    GPUs where it ``applies`` (for surfaces: GGX and no shadow factors); an explicit "kernel" where it does
+    not is an error naming ``caller``."""
     if light_loop == "auto":
         return "kernel" if applies and jax.default_backend() == "gpu" else "scan"
     if light_loop == "kernel" and not applies:
-        raise ValueError(f"{caller}: the light-loop kernel takes GGX and no shadow factors only")
+        raise ValueError(f"{caller}: the light-loop kernel does not apply here (it takes GGX and no shadow factors)")
     return light_loop
 
 
@@ -161,7 +162,8 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     shared by deferred and forward shading.
     """
     points = jnp.asarray(points, jnp.float32)
-    if _light_loop(light_loop, shadow, distribution, "accumulate_lights") == "kernel" and lights.count > 0:
+    applies = shadow is None and distribution == "ggx"
+    if resolve_light_loop(light_loop=light_loop, applies=applies, caller="accumulate_lights") == "kernel" and lights.count > 0:
         from gpupro.shading.light_kernel import fused_accumulate_lights  # it builds on this module
 
         terms = view_terms(normals, views, base_color=base_color, roughness=roughness, metallic=metallic,
@@ -174,10 +176,12 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
 
 def light_reaches(lights: Lights, points):
     """Whether each of N lights' influence truly reaches each of P points [P, 3]: directional lights
-    always; point and spot lights where |p_light − x| < range, spots also strictly inside the outer
-    cone (cos angle > cos_outer). Returns bool [P, N]: where :func:`light_radiance` can be non-zero
-    (shadows and the cosine aside)."""
-    delta = jnp.asarray(points, jnp.float32)[:, None, :] - lights.position[None]
+    always; point, spot and capsule lights where |x − q(x)| < range (q the representative point of
+    :func:`gpupro.shading.light_falloff.representative_points`: the position, or a capsule's nearest
+    segment point), spots also strictly inside the outer cone (cos angle > cos_outer). Returns bool
+    [P, N]: where :func:`light_radiance` can be non-zero (shadows and the cosine aside)."""
+    points = jnp.asarray(points, jnp.float32)
+    delta = points[:, None, :] - representative_points(lights, points)
     distance_sq = dot3(delta, delta)
     in_range = distance_sq < jnp.where(lights.kind == DIRECTIONAL, jnp.inf, lights.range * lights.range)[None]
     along_axis = dot3(delta, lights.direction[None])
@@ -227,7 +231,8 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     else:  # −1 picks an appended empty row
         lists = jnp.concatenate([lists, jnp.full((1, capacity), -1, jnp.int32)])
         rows = jnp.where(jnp.asarray(list_of_group) < 0, lists.shape[0] - 1, jnp.asarray(list_of_group, jnp.int32))
-    light_loop = _light_loop(light_loop, shadow, distribution, "accumulate_light_lists")
+    light_loop = resolve_light_loop(light_loop=light_loop, applies=shadow is None and distribution == "ggx",
+                                    caller="accumulate_light_lists")
     return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
 
 

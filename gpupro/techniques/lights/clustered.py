@@ -28,12 +28,16 @@ space (camera at the origin looking down −z, view depth d = −z):
    direction through its farthest corner) or from the samples (``"samples"``: a = normalised mean
    normal, α = the largest angle between a and a member normal).
 4. Light assignment (:func:`assign_lights`), light i kept for cluster c when
-       the cluster's AABB overlaps the AABB of the light's bounding sphere (the leaf box), and
+       the cluster's AABB overlaps the light's leaf box (:func:`gpupro.shading.light_bounds.light_boxes`:
+       the box of its bounding sphere, a capsule's own box), and
        the AABB meets the light's true volume (:func:`gpupro.shading.light_bounds.box_meets_light`:
-       Arvo's test on the range ball and, for spots, the cone), and
+       Arvo's test on the range ball, for spots also the cone, for capsules the exact segment–box
+       distance), and
        the light is not back-facing: ω ≤ π/2 + α + δ (Fig. 7), with ω the angle between a and the
-       direction d_i from the AABB's centre to the light, δ = asin(R / |d_i|) the half-angle of the cone
-       from the light around the AABB's bounding sphere of radius R (δ = 0 for directional lights);
+       direction d_i from the AABB's centre to the light, δ = asin((R + ℓ_i) / |d_i|) the half-angle of
+       the cone from the light around the AABB's bounding sphere of radius R, widened by a capsule's
+       half-length ℓ_i (0 for the other kinds; the representative point q(x) lies within ℓ_i of the
+       light's centre, so every l = q(x) − x lies in that cone); δ = 0 for directional lights;
        ω > π/2 + α + δ means n · l < 0 for every sample, whose radiance is then exactly 0.
    ``assignment = "brute_force"`` tests every (cluster, light) pair; ``"tree"`` finds the same pairs
    through the per-frame light tree of :mod:`gpupro.techniques.lights.light_tree` (Morton-sorted
@@ -77,7 +81,7 @@ import jax.numpy as jnp
 from gpupro.numerics import einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, Lights
-from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, transform_lights
+from gpupro.shading.light_bounds import SLACK, box_meets_light, light_boxes, light_spheres, transform_lights
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
@@ -310,10 +314,11 @@ def build_clusters(view_position, view_normal, coverage, camera: Camera, *, tile
 
 
 def light_leaf_boxes(lights_view: Lights):
-    """AABBs ``(lower, upper)`` [N, 3] of the lights' bounding spheres (:func:`light_spheres`), widened
-    by :data:`SLACK`; infinite for directional lights. Also returns the sphere centres [N, 3]."""
-    centre, radius = light_spheres(lights_view)
-    reach = radius[:, None] + SLACK * (jnp.abs(centre) + radius[:, None])
+    """AABBs ``(lower, upper)`` [N, 3] of the lights' influence (:func:`light_boxes`: bounding spheres'
+    boxes, a capsule's own box), widened by :data:`SLACK`; infinite for directional lights. Also returns
+    the boxes' centres [N, 3]."""
+    centre, half = light_boxes(lights_view)
+    reach = half + SLACK * (jnp.abs(centre) + half)
     return centre - reach, centre + reach, centre
 
 
@@ -327,6 +332,7 @@ def backfacing(lower, upper, axis, half_angle, lights: Lights):
     distance = jnp.linalg.norm(towards, axis=-1)
     cos_omega = jnp.sum(towards * axis, axis=-1) / jnp.maximum(distance, 1e-30)
     omega = jnp.arccos(jnp.clip(cos_omega, -1.0, 1.0))
+    radius = radius + lights.length  # a capsule lights from anywhere within its half-length of its centre
     delta = jnp.where(directional, 0.0, jnp.where(distance > radius, jnp.arcsin(jnp.clip(radius / distance, 0.0, 1.0)), jnp.pi))
     return omega > 0.5 * jnp.pi + half_angle + delta + CONE_MARGIN
 

@@ -13,16 +13,20 @@ no size).
 Steps, per tile τ of t × t pixels (T = ⌈H/t⌉ · ⌈W/t⌉) with covered samples S_τ (world positions x):
 1. coarse list (the functions of :mod:`gpupro.techniques.lights.tiled`): light i is listed when the pixel
    rectangle of its bounding sphere (the range sphere of a point light, the smallest axis-centred sphere
-   of a spot's sector) overlaps τ and its depth extent [d_c − R, d_c + R] overlaps the tile's
-   [z_min, z_max]; count → scan → fill into C = min(``tile_capacity``, N) slots, the excess dropped and
-   counted (``tile_list_overflow``; entry points grow C to ``max_lights_per_tile``);
+   of a spot's sector, the sphere of radius ℓ + r around a capsule's centre) overlaps τ and its depth
+   extent [d_c − R, d_c + R] overlaps the tile's [z_min, z_max]; count → scan → fill into
+   C = min(``tile_capacity``, N) slots, the excess dropped and counted (``tile_list_overflow``; entry
+   points grow C to ``max_lights_per_tile``);
 2. fine pruning: keep listed light i only if  ∃ x ∈ S_τ : reaches_i(x), with the light's true volume
        point:  |x − p_i| < r_i;   spot:  |x − p_i| < r_i  and  (x − p_i)·a_i > cos θ_i · |x − p_i|;
+       capsule:  |x − q_i(x)| < r_i,  q_i(x) = p_i + clamp((x − p_i)·a_i, −ℓ_i, ℓ_i) a_i  (the true capsule,
+                 not its bounding sphere: a capsule whose sphere covers samples of τ that the capsule
+                 misses is pruned);
        directional: always
    (:func:`gpupro.shading.light_loop.light_reaches`, the test the light loop counts exact work with), so
    no light reaching a sample of τ is removed and every kept one reaches at least one;
-3. sort: the kept lights ordered point lights, then spots, then the others (directional), by index
-   within a type; the per-tile count of each type is kept beside the list;
+3. sort: the kept lights ordered point lights, then spots, then capsules, then the others (directional),
+   by index within a type; the per-tile count of each type is kept beside the list;
 4. shade each pixel with its tile's list (the per-light arithmetic of ``deferred``):
        L_o(x) = L_e + L_a · (1 − m) · c + Σ_{i ∈ list(τ)} f(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i
    A pruned light has reaches_i = false at every sample of τ, where its radiance is 0: the image is
@@ -32,7 +36,7 @@ Counters (those of ``tiled_deferred``, here over the pruned lists): ``lighting_c
 |list(τ)|; ``exact_lighting_computations`` Σ_x of the listed lights reaching x (equal to tiled's, since
 pruning removes only lights reaching no sample); ``coarse_lighting_computations`` Σ_τ |S_τ| · |coarse(τ)|;
 ``lights_pruned`` Σ_τ (|coarse(τ)| − |list(τ)|); ``point_lights_listed``, ``spot_lights_listed``,
-``other_lights_listed`` Σ_τ of the per-type counts.
+``capsule_lights_listed``, ``other_lights_listed`` Σ_τ of the per-type counts.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.scene.camera import Camera
-from gpupro.scene.lights import POINT, SPOT, Lights
+from gpupro.scene.lights import CAPSULE, POINT, SPOT, Lights
 from gpupro.shading.light_loop import default_light_chunk, light_reaches
 from gpupro.technique import Counter, Option, Technique, integer, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
@@ -50,8 +54,9 @@ from gpupro.techniques.lights.tiled import (
 )
 from gpupro.techniques.raster.gbuffer import SURFACE
 
-LIGHT_TYPES = ("point", "spot", "other")
-"""The order of the types in a sorted list (ranks 0, 1, 2)."""
+LIGHT_TYPES = ("point", "spot", "capsule", "other")
+"""The order of the types in a sorted list (ranks 0, 1, 2, 3; "other": directional lights)."""
+_TYPE_KINDS = (POINT, SPOT, CAPSULE)  # the kinds of the ranks before "other"
 
 
 def prune_light_lists(lists, lights: Lights, points, covered, *, light_chunk: int | None):
@@ -81,12 +86,14 @@ def prune_light_lists(lists, lights: Lights, points, covered, *, light_chunk: in
 
 
 def sort_by_type(lists, kept, kind):
-    """The kept lights of each list ordered point, spot, other (by index within a type), −1 after them.
+    """The kept lights of each list ordered point, spot, capsule, other (by index within a type), −1 after them.
 
     ``lists`` int32 [T, C]; ``kept`` bool [T, C]; ``kind`` int32 [N] light kinds. Returns ``(sorted int32
-    [T, C], type_counts int32 [T, 3])``, the counts in the order of :data:`LIGHT_TYPES`.
+    [T, C], type_counts int32 [T, 4])``, the counts in the order of :data:`LIGHT_TYPES`.
     """
-    rank = jnp.where(kind == POINT, 0, jnp.where(kind == SPOT, 1, 2))
+    rank = jnp.full(kind.shape, len(_TYPE_KINDS), jnp.int32)
+    for r, k in enumerate(_TYPE_KINDS):
+        rank = jnp.where(kind == k, r, rank)
     key = jnp.where(kept, rank[jnp.maximum(lists, 0)], len(LIGHT_TYPES))
     order = jnp.argsort(key, axis=1, stable=True)
     ordered = jnp.take_along_axis(jnp.where(kept, lists, -1), order, axis=1)
@@ -100,7 +107,7 @@ def build_light_lists(lights: Lights, camera: Camera, position, view_depth, cove
 
     ``position`` [H, W, 3] world positions; ``view_depth``, ``coverage`` [H, W]; static: ``tile`` pixels,
     ``tile_capacity`` list slots, ``light_chunk`` slots pruned per step. Returns ``(lists int32 [T, C],
-    type_counts int32 [T, 3], coarse int32 [T], counts int32 [T])``: the pruned, sorted lists (C =
+    type_counts int32 [T, 4], coarse int32 [T], counts int32 [T])``: the pruned, sorted lists (C =
     min(tile_capacity, N)), their per-type counts, the coarse lengths kept and before truncation.
     """
     coarse_lists, counts = cull_lights(lights, camera, view_depth, coverage, tile=tile,
@@ -161,13 +168,14 @@ register(Technique(
         Counter("lights_pruned", "Σ over tiles of the coarse-list lights removed by fine pruning"),
         Counter("point_lights_listed", "Σ over tiles of the point lights in the pruned lists"),
         Counter("spot_lights_listed", "Σ over tiles of the spot lights in the pruned lists"),
+        Counter("capsule_lights_listed", "Σ over tiles of the capsule lights in the pruned lists"),
         Counter("other_lights_listed", "Σ over tiles of the other (directional) lights in the pruned lists"),
     ) + TILED_COUNTERS[1:],
     reference="deferred",
     example_options={"tile": 8},
     notes=("Missing from the GPU Pro 7 chapter (only its blog summary is in the seeds): screen-space AABBs "
            "of the true light shapes (here the projected bounding cube of each bounding sphere, from "
-           "tiled_deferred), other volume shapes (wedges, capsules, boxes), the asynchronous-compute "
+           "tiled_deferred), other volume shapes (wedges, boxes; capsules are here), the asynchronous-compute "
            "scheduling, the tiled-forward and pre-pass variants, and a light loop that branches per type "
            "segment (the lists are sorted, but every slot runs the same arithmetic). The coarse list "
            "shares the fine list's fixed [T, C] storage, so the capacity bounds the coarse length."),

@@ -12,13 +12,14 @@ The chapter, step by step (view depth d = −z_view, linear, as the chapter stor
    the chapter finds 1/4 or 1/8 "largely sufficient") by point samples and ``max`` (GatherRed), so that
    no light is culled in front of a farther sample of the block: D_max(b) = max_{x ∈ b} d(x), with
    empty pixels at +∞ (the cleared far plane).
-2. Rasterize each light's shell (sphere for points, cone for spots) at W' × H', depth test off. Front
-   faces store s · d_front with s = sign(D_max − d_front) (software depth test: negative when the shell's
-   front is behind the scene); back faces allocate a link {z_min = d_front (0 when the near plane clipped
-   the front face), z_max = d_back, light index, next} unless the stored front depth is negative.
-   So a light is linked at a reduced pixel when its shell meets the pixel's ray and its front is not
-   behind D_max: lights wholly *in front* of the opaque surface are kept, which is what lets
-   translucent surfaces (depth-tested against the opaque depth, hence in front of it) read the lists.
+2. Rasterize each light's shell (sphere for points, cone for spots; here capsules too) at W' × H', depth
+   test off. Front faces store s · d_front with s = sign(D_max − d_front) (software depth test: negative
+   when the shell's front is behind the scene); back faces allocate a link {z_min = d_front (0 when the
+   near plane clipped the front face), z_max = d_back, light index, next} unless the stored front depth
+   is negative. So a light is linked at a reduced pixel when its shell meets the pixel's ray and its
+   front is not behind D_max: lights wholly *in front* of the opaque surface are kept, which is what
+   lets translucent surfaces (depth-tested against the opaque depth, hence in front of it) read the
+   lists.
 3. Allocation: link = counter++ (dropped if ≥ the pool size), head[pixel] ⇄ link (LIFO list).
 4. Shading a sample of depth d in pixel x: walk the list of LLL pixel (⌊x/s⌋, ⌊y/s⌋); skip a link unless
    z_min ≤ d ≤ z_max; evaluate the others with the light record of the stored index.
@@ -29,7 +30,12 @@ The pure-array form here:
 - Shells are exact (no tessellation): per LLL pixel b and light i, the interval [t_0, t_1] of the ray
   through b's centre, starting on the near plane, inside the light's volume: for a point light the ball
   |x − p| < r; for a spot the spherical sector = ball ∩ cone (apex p, axis a, half-angle θ < 90°), so
-  spots are culled as cones. Ray–ball: t = −m·u ± √(ρ² − |m − (m·u)u|²), m = o − p. Ray–cone: with w =
+  spots are culled as cones; for a capsule (centre p, axis a, half-length ℓ) the capsule |x − q(x)| < r,
+  exactly: the union of the balls at p ± ℓa and the cylinder |(x − p) − ((x − p)·a) a| < r cut to the
+  slab |(x − p)·a| ≤ ℓ, whose interval along the convex capsule is [min of the pieces' entries, max of
+  their exits]. Ray–ball: t = −m·u ± √(ρ² − |m − (m·u)u|²), m = o − p. Ray–cylinder, with m⊥, u⊥ the
+  parts of m, u across a: t = t_c ± √((ρ² − |m⊥ + t_c u⊥|²) / |u⊥|²), t_c = −m⊥·u⊥ / |u⊥|² (a ray along
+  the axis is inside for every t or none); slab: (m + t u)·a ∈ [−ℓ, ℓ]. Ray–cone: with w =
   o − p', g(t) = (w + tu)·a − cos θ |w + tu| is concave, so {g ≥ 0} ∩ [t_0, t_1] is an interval whose
   ends are t_0, t_1 (where g ≥ 0) or roots of ((w+tu)·a)² − cos²θ |w+tu|² = At² + Bt + C on the right
   nappe. Depths: z = d(o) + t · (u · forward), z_min clamped to the near plane (the chapter's 0).
@@ -38,7 +44,8 @@ The pure-array form here:
   block at depth z lies in the block's cross-section at depth z, a rectangle of half-diagonal h(z)
   (affine in z) around the centre ray's point x' at the same depth. If x is in the light's volume V,
   x' is in V ⊕ ball(δ) with δ = h(z_far), z_far the depth of the light's far side; and V ⊕ ball(δ) ⊂
-  ball(p, r + δ) ∩ cone(p − (δ / sin θ) a, θ) (the cone's surface offset outward by δ). The centre
+  ball(p, r + δ) ∩ cone(p − (δ / sin θ) a, θ) (the cone's surface offset outward by δ); a capsule ⊕
+  ball(δ) is the capsule of radius r + δ. The centre
   ray's interval through this *oversized shell* therefore holds the depth of every block sample the
   light reaches, exactly the property the per-pixel skip test needs. Bounds are then rounded outward to
   fp16 (the chapter's compressed node) and widened by :data:`gpupro.shading.light_bounds.SLACK`.
@@ -158,6 +165,44 @@ def _ray_ball(origin, direction, centre, radius):
     return jnp.maximum(-along - root, 0.0), t1
 
 
+def _valid(t0, t1):
+    """An interval with its empty cases (t0 > t1) made (+inf, −inf), so that min / max unions skip them."""
+    empty = t0 > t1
+    return jnp.where(empty, jnp.inf, t0), jnp.where(empty, -jnp.inf, t1)
+
+
+def _ray_capsule(origin, direction, position, axis, length, radius):
+    """[t_0, t_1] (t ≥ 0) of G rays (``origin``, unit ``direction`` [G, 3]) inside N capsules (centre
+    ``position``, unit ``axis`` [N, 3], half-length ``length`` [N] ≥ 0, ``radius`` [G, N]): ``(t0, t1)``
+    [G, N], (+inf, −inf) where they miss (module docstring); for length 0 the interval of :func:`_ray_ball`."""
+    ends = [_valid(*_ray_ball(origin, direction, position + sign * length[:, None] * axis, radius))
+            for sign in (-1.0, 1.0)]
+    m = origin[:, None, :] - position[None]  # [G, N, 3]
+    u = direction[:, None, :]
+    m_along, u_along = jnp.sum(m * axis[None], -1), jnp.sum(u * axis[None], -1)
+    m_across = m - m_along[..., None] * axis[None]
+    u_across = u - u_along[..., None] * axis[None]
+    speed = jnp.sum(u_across * u_across, -1)  # |u⊥|²
+    moving = speed > 1e-20
+    closest = -jnp.sum(m_across * u_across, -1) / jnp.where(moving, speed, 1.0)
+    gap = m_across + closest[..., None] * u_across
+    room = radius * radius - jnp.sum(gap * gap, -1)
+    half = jnp.sqrt(jnp.maximum(room, 0.0) / jnp.where(moving, speed, 1.0))
+    inside = jnp.sum(m_across * m_across, -1) <= radius * radius  # a ray along the axis: all of it or none
+    c0 = jnp.where(moving, jnp.where(room >= 0.0, closest - half, jnp.inf), jnp.where(inside, -jnp.inf, jnp.inf))
+    c1 = jnp.where(moving, jnp.where(room >= 0.0, closest + half, -jnp.inf), jnp.where(inside, jnp.inf, -jnp.inf))
+    crosses = u_along != 0.0
+    step = jnp.where(crosses, u_along, 1.0)
+    a, b = (-length[None] - m_along) / step, (length[None] - m_along) / step
+    in_slab = jnp.abs(m_along) <= length[None]
+    s0 = jnp.where(crosses, jnp.minimum(a, b), jnp.where(in_slab, -jnp.inf, jnp.inf))
+    s1 = jnp.where(crosses, jnp.maximum(a, b), jnp.where(in_slab, jnp.inf, -jnp.inf))
+    cylinder = _valid(jnp.maximum(jnp.maximum(c0, s0), 0.0), jnp.minimum(c1, s1))
+    cylinder = tuple(jnp.where(length[None] > 0.0, c, e) for c, e in zip(cylinder, (jnp.inf, -jnp.inf)))
+    pieces = ends + [cylinder]
+    return jnp.min(jnp.stack([t0 for t0, _ in pieces]), 0), jnp.max(jnp.stack([t1 for _, t1 in pieces]), 0)
+
+
 def _clip_to_cone(origin, direction, apex, axis, cos_angle, t0, t1):
     """The part of each ray segment [t0, t1] [G, N] inside single-nappe cones (apex [G, N, 3], unit axis
     [N, 3], half-angle < 90°): ``(t0, t1)``, t0 > t1 where empty (module docstring)."""
@@ -199,10 +244,12 @@ def shell_intervals(lights: Lights, camera: Camera, grid: tuple[int, int], *, sc
     view_lights = transform_lights(lights, camera.view_matrix())
     origin, direction, half_near, half_far = block_rays(camera, grid, scale=scale)
     near, far = camera.near, camera.far
-    depth_far = jnp.maximum(-view_lights.position[:, 2] + lights.range, near)  # the light's far side
+    reach = lights.range + lights.length * jnp.abs(view_lights.direction[:, 2])  # a capsule's segment: ℓ |a_z|
+    depth_far = jnp.maximum(-view_lights.position[:, 2] + reach, near)  # the light's far side
     half = half_near[:, None] + (half_far - half_near)[:, None] * ((depth_far - near) / (far - near))[None]
     dilation = half * (1.0 + _DILATION_SLACK) + SLACK * depth_far[None]  # δ [G, N]
-    t0, t1 = _ray_ball(origin, direction, view_lights.position, lights.range[None] * (1.0 + SLACK) + dilation)
+    t0, t1 = _ray_capsule(origin, direction, view_lights.position, view_lights.direction, lights.length,
+                          lights.range[None] * (1.0 + SLACK) + dilation)
     sin = jnp.sqrt(jnp.maximum(1.0 - lights.cos_outer * lights.cos_outer, 0.0))
     cone = (lights.kind == SPOT) & (sin > _MIN_SIN)
     apex = view_lights.position[None] - (dilation / jnp.maximum(sin, _MIN_SIN)[None])[..., None] * view_lights.direction[None]
@@ -396,8 +443,9 @@ register(Technique(
     ) + SHADING_COUNTERS[1:],
     reference="deferred",
     example_options={"resolution_scale": 2},
-    notes=("Missing from GPU Pro 6 III.1: rasterized, tessellated light shells (here exact analytic ray–ball and "
-           "ray–cone intervals, oversized by the block's size so one ray per LLL pixel is conservative), box "
+    notes=("Missing from GPU Pro 6 III.1: rasterized, tessellated light shells (here exact analytic ray–ball, "
+           "ray–cone and ray–capsule intervals, oversized by the block's size so one ray per LLL pixel is "
+           "conservative), box "
            "shells for area lights (the project has none), the 8-bit light index and 24-bit next link (indices "
            "stay int32, so more than 256 lights work; the memory counter still uses the 8-byte node), the LIFO "
            "order of the atomic list (a deterministic CSR pool instead), and a forward pass over translucent or "

@@ -16,9 +16,11 @@ array test (it never removes a light that reaches a covered sample), with its co
        point (ball, centre p, range r):            h(u) = u·p + r
        spot (sector, apex p, axis a, half-angle θ): h(u) = u·p + r · max(0, cos(max(φ − θ, 0))),
                                                     cos φ = u·a
+       capsule (centre p, axis a, half-length ℓ):  h(u) = u·p + ℓ |u·a| + r
        directional:                                 h(u) = +∞
    (the sector's farthest point along u lies on the generator nearest to u, at distance r, or is
-   the apex), so spots are culled as cones, not as spheres;
+   the apex; a capsule is the segment ⊕ a ball, whose support functions add), so spots are culled as
+   cones and capsules as capsules, not as spheres;
 2. occlusion against a hierarchical max-depth buffer (the chapter's CPU occlusion culling "similar to
    the hierarchical z-buffer", Greene et al. 1993): Z_0 = the view depth of covered pixels, +∞ at empty
    pixels (sky never occludes); Z_{k+1} = max over 2 × 2 texels of Z_k. Light i's pixel rectangle
@@ -36,10 +38,11 @@ array test (it never removes a light that reaches a covered sample), with its co
    entry points grow C to ``surviving_lights``). Each listed light is a pass over the screen whose
    stencil tags the pixels x it lights:
        mask_i(x) = covered(x) ∧ reaches_i(x) ∧ (n·l_i > 0),
-   reaches_i the exact volume test (:func:`gpupro.shading.light_loop.light_reaches`), n·l_i > 0 the
-   back-facing test that the chapter's sun pre-pass (Listing 9-1) applies to the sun (sky pixels are
-   not covered; the ambient-occlusion test (N·L)·AO > 0 has AO ≡ 1: the G-buffer stores no AO). Only
-   masked pixels are shaded, with the per-light arithmetic of brute force
+   reaches_i the exact volume test (:func:`gpupro.shading.light_loop.light_reaches`), l_i towards the
+   light's representative point (a capsule's nearest segment point), n·l_i > 0 the back-facing test
+   that the chapter's sun pre-pass (Listing 9-1) applies to the sun (sky pixels are not covered; the
+   ambient-occlusion test (N·L)·AO > 0 has AO ≡ 1: the G-buffer stores no AO). Only masked pixels are
+   shaded, with the per-light arithmetic of brute force
    (:func:`gpupro.shading.light_loop.light_radiance`):
        L_o(x) = L_e + L_a · (1 − m) · c + Σ_{i ∈ list} mask_i(x) · f(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i
    The unmasked terms are exactly 0 (outside V_i the falloff is 0; where n·l ≤ 0 the cosine is), so
@@ -91,7 +94,7 @@ from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_phong
 from gpupro.shading.light_bounds import SLACK, light_spheres, transform_lights
-from gpupro.shading.light_falloff import incident_light
+from gpupro.shading.light_falloff import incident_light, representative_points
 from gpupro.shading.light_loop import (
     check_shading_inputs, compose_radiance, default_light_chunk, light_radiance, light_reaches, surface_terms,
     view_directions,
@@ -129,7 +132,8 @@ def light_support(lights: Lights, directions):
     sin_theta = jnp.sqrt(jnp.maximum(1.0 - cos_theta * cos_theta, 0.0))
     nearest_generator = jnp.where(cos_phi >= cos_theta, 1.0, cos_phi * cos_theta + sin_phi * sin_theta)
     reach = lights.range[:, None] * jnp.where((lights.kind == SPOT)[:, None], jnp.maximum(nearest_generator, 0.0), 1.0)
-    support = offset + reach * (1.0 + SLACK) + SLACK * jnp.abs(offset)
+    segment = lights.length[:, None] * jnp.abs(cos_phi)  # 0 but for capsules
+    support = offset + (segment + reach) * (1.0 + SLACK) + SLACK * jnp.abs(offset)
     return jnp.where((lights.kind == DIRECTIONAL)[:, None], jnp.inf, support)
 
 
@@ -298,9 +302,10 @@ def lut_radiance(points, normals, views, material: dict, lights: Lights, visibil
 
 def faces_light(lights: Lights, points, normals):
     """bool [P, M]: n·l > 0 for each point [P, 3] with unit normal ``normals`` [P, 3] and each of M
-    lights (l towards a point or spot light's position, −direction for a directional light)."""
+    lights (l towards the light's representative point: a point or spot light's position, a capsule's
+    nearest segment point; −direction for a directional light)."""
     towards = jnp.where((lights.kind == DIRECTIONAL)[None, :, None], -lights.direction[None],
-                        lights.position[None] - points[:, None, :])
+                        representative_points(lights, points) - points[:, None, :])
     return jnp.sum(normals[:, None, :] * towards, axis=-1) > 0.0
 
 

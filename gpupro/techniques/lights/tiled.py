@@ -16,6 +16,9 @@ Light bounds (view space, the camera looking down −z; view depth d = −z):
   p + c·a that holds it has R = max(c, √(r² + c² − 2rc cos θ)), minimal at
       θ ≤ 45°: c = R = r / (2 cos θ);      θ > 45°: c = r cos θ, R = r sin θ
   (R < r always: tighter than the range sphere);
+- capsule light of centre p, half-length ℓ and range r (:mod:`gpupro.scene.lights`): the sphere of centre
+  p and radius ℓ + r, which holds the capsule (a conservative bound: a long capsule seen lengthwise
+  gets its sphere's rectangle; ``fptl`` prunes such lists against the true capsule);
 - directional light: every tile.
 Screen bound of a sphere (centre d_c deep): the pixel rectangle of the projected 8 corners of its
 view-space bounding cube, which holds the projection of the sphere because projection maps the convex
@@ -30,8 +33,9 @@ entry points grow the capacity to ``max_lights_per_tile``. Olsson's packed list 
 size into one concatenated index list) becomes this padded array, because XLA needs static shapes.
 
 Counters: ``lighting_computations`` Σ_covered |list|; ``exact_lighting_computations`` Σ_covered of the
-listed lights whose influence truly reaches the pixel (distance < range, and inside the outer cone for
-spots; with no overflow, every such light is listed, the bounds being conservative);
+listed lights whose influence truly reaches the pixel (distance to the light's position, or to a
+capsule's segment, < range, and inside the outer cone for spots; with no overflow, every such light
+is listed, the bounds being conservative);
 ``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated).
 """
 

@@ -34,8 +34,9 @@ t × t pixels (T = ⌈W/t⌉ · ⌈H/t⌉ tiles: 120 × 68 at 1920 × 1080 with 
    - "aabb" (§1.4.3): the view-space box of the partition's eight corners q_i(a_k), q_i(b_k); a
      sphere passes when its distance to the box (Arvo) is < r.
    The spheres are :func:`gpupro.shading.light_bounds.light_spheres` (range sphere of a point light,
-   smallest axis-centred sphere of a spot's sector). Spots are then culled as cones as well, which the
-   chapter does not do: "planes" tests the cone against the bounding sphere of the partition's corners
+   smallest axis-centred sphere of a spot's sector, radius ℓ + r around a capsule's centre). Spots are
+   then culled as cones and capsules as capsules as well, which the chapter does not do: "planes"
+   tests the cone or capsule against the bounding sphere of the partition's corners
    (:func:`~gpupro.shading.light_bounds.sphere_meets_light`), "aabb" against the box
    (:func:`~gpupro.shading.light_bounds.box_meets_light`). With two partitions a light is listed in
    partition k only if it also passes the whole tile's [z_min, z_max] test: the cone tests on bounding
@@ -51,12 +52,13 @@ t × t pixels (T = ⌈W/t⌉ · ⌈H/t⌉ tiles: 120 × 68 at 1920 × 1080 with 
    (``tiled_culling_forward``), with the depth bounds from their view depths (a depth pre-pass).
 
 Option ``light_buffer`` (§1.4.1): "compact" culls from separate arrays holding only what culling needs
-(sphere centres and radii; the spot cones' apex, axis and angle for the cone test), the chapter's
-cache-friendly buffer; "full" packs every light's whole record (sphere, colour, apex, axis, range,
-cone cosines, kind: 17 floats) into one [N, 17] array of structures, kept by an optimization barrier so
-that XLA cannot read the original arrays instead, and the culler unpacks its columns from it (strided
-reads, as the chapter's StructuredBuffer of LightArrayData). In one jitted frame this is all XLA
-changes: which arrays the culling kernels gather from; the image and the lists are identical.
+(sphere centres and radii; the spot cones' apex, axis and angle for the cone test, a capsule's segment),
+the chapter's cache-friendly buffer; "full" packs every light's whole record (sphere, colour, apex,
+axis, range, cone cosines, kind, capsule half-length: 18 floats) into one [N, 18] array of structures,
+kept by an optimization barrier so that XLA cannot read the original arrays instead, and the culler
+unpacks its columns from it (strided reads, as the chapter's StructuredBuffer of LightArrayData). In one
+jitted frame this is all XLA changes: which arrays the culling kernels gather from; the image and the
+lists are identical.
 
 Culling (:func:`cull_tiles`: lights, camera, view depth, coverage → lists) and shading
 (:func:`shade_culled`) are separate functions, so the culling can be jitted and timed alone.
@@ -243,7 +245,8 @@ def volume_hits(normal, offset, corners, depth_ranges, centre, radius, view_ligh
 
     ``normal``, ``offset`` the side planes; ``corners`` [T, V, 8, 3] and ``depth_ranges`` [T, V, 2] of
     the volumes; ``centre``, ``radius`` the lights' bounding spheres and ``view_lights`` the lights, in
-    view space; ``bounds`` (static) "planes" or "aabb". Spots are tested as cones too.
+    view space; ``bounds`` (static) "planes" or "aabb". Spots are tested as cones and capsules as
+    capsules too.
     """
     n_tiles, n_volumes = depth_ranges.shape[:2]
     flat = corners.reshape(-1, 8, 3)
@@ -262,7 +265,7 @@ def volume_hits(normal, offset, corners, depth_ranges, centre, radius, view_ligh
 
 def culling_inputs(lights: Lights, camera: Camera, *, light_buffer: str):
     """What the culler reads, in view space: ``(centre [N, 3], radius [N], lights)``, the bounding
-    spheres and the lights for the cone test; from one [N, 17] array of whole light records for
+    spheres and the lights for the cone and capsule tests; from one [N, 18] array of whole light records for
     ``light_buffer`` = "full", from separate arrays for "compact" (module docstring)."""
     view_lights = transform_lights(lights, camera.view_matrix())
     centre, radius = light_spheres(view_lights)
@@ -270,10 +273,11 @@ def culling_inputs(lights: Lights, camera: Camera, *, light_buffer: str):
         return centre, radius, view_lights
     columns = (centre, radius[:, None], view_lights.color, view_lights.position, view_lights.direction,
                view_lights.range[:, None], view_lights.cos_inner[:, None], view_lights.cos_outer[:, None],
-               view_lights.kind[:, None].astype(jnp.float32))
+               view_lights.kind[:, None].astype(jnp.float32), view_lights.length[:, None])
     records = jax.lax.optimization_barrier(jnp.concatenate(columns, axis=1))
     unpacked = Lights(kind=records[:, 16].astype(jnp.int32), position=records[:, 7:10], direction=records[:, 10:13],
-                      color=records[:, 4:7], range=records[:, 13], cos_inner=records[:, 14], cos_outer=records[:, 15])
+                      color=records[:, 4:7], range=records[:, 13], cos_inner=records[:, 14], cos_outer=records[:, 15],
+                      length=records[:, 17])
     return records[:, :3], records[:, 3], unpacked
 
 
@@ -418,7 +422,7 @@ COUNTERS = TILED_COUNTERS + (
 NOTES = ("Missing from GPU Pro 6 VI.1: the single-kernel tiled deferred that shades from shared memory (here "
          "culling and shading are two steps of one jitted frame), the atomics (count → scan → fill gives the "
          "same lists, in ascending order), transparency and MSAA, and the benchmark timings (see the issue's "
-         "GPU benchmark). Departures: spots are also culled as cones; with a depth partition each partition's "
+         "GPU benchmark). Departures: spots are also culled as cones, capsules as capsules; with a depth partition each partition's "
          "list is also tested against the whole tile; tile corners use the true pixel-to-NDC mapping of the "
          "screen, not the chapter's 'whole tile' resolution.")
 EXAMPLE = {"tile": 8}

@@ -39,6 +39,11 @@ so fog and surfaces see the same lights), v_i its shadow-map visibility (1 witho
 constant ambient radiance (an isotropic radiance convolved with a normalised phase function is itself).
 cos θ = l_i · ω: light from a light straight ahead of the camera keeps going towards the eye (forward
 scattering, θ = 0).
+The sum over lights runs as the shared scan over chunks of lights (``light_loop = "scan"``, any
+shadows), or as one Pallas kernel over blocks of froxels that keeps each block's sums in registers
+(``"kernel"``: :func:`fused_scattered_light`, through :func:`gpupro.shading.light_kernel.light_sums`
+and the component form of the same incident light; no shadows); ``"auto"`` takes the kernel on GPUs
+when no light is shadowed. The two agree to float rounding (tests/test_volumetric_fog.py).
 
 Accumulation (sec. 3.3.5, Listing 3.2), front to back along each column, with Δt_k = (z_{k+1} − z_k) / (ω·f)
 the slice's length along the ray (f the viewing axis), τ_k = σ_t,k Δt_k and T_k = exp(−Σ_{j<k} τ_j):
@@ -73,6 +78,7 @@ step exactly as above: no froxels, no interpolation, no temporal history.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -83,7 +89,8 @@ from gpupro.media import henyey_greenstein, pixel_rays, trilinear
 from gpupro.numerics import dot3, matmul
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_falloff import incident_light
-from gpupro.shading.light_loop import sum_over_lights
+from gpupro.shading.light_kernel import incident_components, light_sums
+from gpupro.shading.light_loop import LIGHT_LOOPS, resolve_light_loop, sum_over_lights
 from gpupro.technique import (BOOLEAN, Buffer, Counter, Option, OptionError, Param, Technique, integer, number, one_of,
                               optional, register)
 from gpupro.techniques.shadows.shadow_maps import build_shadow_maps, shadow_factor
@@ -95,6 +102,10 @@ JITTER = np.array([int(f"{n:016b}"[::-1], 2) / 2.0**16 for n in range(1, 17)], n
 """ξ_f of frames f = 0 … 15 (then repeating): base-2 radical inverse of f + 1, so frame 0 samples slice centres."""
 
 _EXPONENT_MAX = 60.0  # cap on −D (y − h_0): e^60 is finite in float32, and no fog is that dense
+SLICE_BATCH_GPU = 32
+"""Slices lit together on GPUs by default (``slice_batch``): one slice of 160 × 90 froxels is too small a
+step for a GPU (docs/benchmarks.md)."""
+
 _SMALL_OPTICAL_DEPTH = 1e-4  # below it, (1 − e^{−τ}) / τ is its series 1 − τ / 2
 
 
@@ -165,20 +176,60 @@ def extinction(params, points, *, noise_seed: int):
     return fog * jnp.maximum(1.0 + params["noise_amplitude"] * noise, 0.0)
 
 
-def in_scattering(params, lights: Lights, points, directions, sigma_t, visibility=None, *, light_chunk: int | None = None):
+def _scattered_scan(points, directions, g, lights: Lights, visibility=None, light_chunk: int | None = None):
+    """Σ_i p_HG(l_i·ω; g) E_i v_i [P, 3] by the shared scan over chunks of lights (the XLA path)."""
+    def scattered(chunk_lights):
+        to_light, irradiance = incident_light(chunk_lights, points)  # [P, chunk, 3]
+        return henyey_greenstein(dot3(to_light, directions[:, None, :]), g)[..., None] * irradiance
+
+    return sum_over_lights(scattered, lights, points.shape[0], shadow=visibility, light_chunk=light_chunk)
+
+
+def _scattered_term(column: list, light: dict):
+    """p_HG(l·ω; g) E⊥ (R, G, B) of the kernel's blocks: column = point (3), ω (3), g."""
+    to_light, scale = incident_components(tuple(column[:3]), light)
+    cosine = sum(l * w for l, w in zip(to_light, column[3:6]))
+    phase = henyey_greenstein(cosine, column[6]) * scale
+    return tuple(phase * c for c in light["color"])
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def fused_scattered_light(points, directions, g, lights: Lights, interpret: bool = False):
+    """Σ_i p_HG(l_i·ω; g) E_i over all N ≥ 1 lights [P, 3] as one kernel over blocks of points
+    (:func:`gpupro.shading.light_kernel.light_sums`; no shadows), equal to the scan. ``points``,
+    ``directions`` [P, 3]; ``g`` scalar. Differentiable (reverse mode, through the scan, recomputed)."""
+    columns = [points[:, 0], points[:, 1], points[:, 2], directions[:, 0], directions[:, 1], directions[:, 2],
+               jnp.broadcast_to(jnp.asarray(g, jnp.float32), points.shape[:1])]
+    return light_sums(columns, lights, _scattered_term, interpret=interpret)
+
+
+def _fused_forward(points, directions, g, lights, interpret):
+    return fused_scattered_light(points, directions, g, lights, interpret), (points, directions, g, lights)
+
+
+def _fused_backward(interpret, saved, cotangent):
+    return jax.vjp(_scattered_scan, *saved)[1](cotangent)
+
+
+fused_scattered_light.defvjp(_fused_forward, _fused_backward)
+
+
+def in_scattering(params, lights: Lights, points, directions, sigma_t, visibility=None, *, light_chunk: int | None = None,
+                  light_loop: str = "auto"):
     """In-scattered radiance per unit length s [P, 3] (W/(m³ sr)) at world ``points`` [P, 3] towards an eye
     looking along unit ``directions`` [P, 3] (eye → point): α σ_t [L_a + Σ_i p_HG(l_i·ω; g) E_i v_i].
 
     ``sigma_t`` [P] extinction (1/world unit); ``lights``: N lights; ``visibility``: None or [P, K] shadow
-    factors of the first K ≤ N lights; ``light_chunk`` (static): lights per scan step (peak [P, chunk, 3]).
+    factors of the first K ≤ N lights; ``light_chunk`` (static): lights per scan step (peak [P, chunk, 3]);
+    ``light_loop`` (static): "scan", "kernel" (:func:`fused_scattered_light`, no shadows) or "auto" (the
+    kernel on GPUs where no shadows apply).
     """
-    def scattered(chunk_lights):
-        to_light, irradiance = incident_light(chunk_lights, points)  # [P, chunk, 3]
-        return henyey_greenstein(dot3(to_light, directions[:, None, :]), params["g"])[..., None] * irradiance
-
-    radiance = params["ambient"] + sum_over_lights(scattered, lights, points.shape[0], shadow=visibility,
-                                                   light_chunk=light_chunk)
-    return params["albedo"] * sigma_t[:, None] * radiance
+    loop = resolve_light_loop(light_loop=light_loop, applies=visibility is None, caller="volumetric fog")
+    if loop == "kernel" and lights.count > 0:
+        total = fused_scattered_light(points, directions, params["g"], lights)
+    else:
+        total = _scattered_scan(points, directions, params["g"], lights, visibility, light_chunk)
+    return params["albedo"] * sigma_t[:, None] * (params["ambient"] + total)
 
 
 def _one_minus_exp_over(x):
@@ -224,13 +275,14 @@ def _shadow_maps(scene, shadowed_lights, shadow_resolution):
     return build_shadow_maps(scene.lights, scene.mesh, scene.camera, count=shadowed_lights, resolution=shadow_resolution)
 
 
-def _medium_at(params, scene, maps, points, directions, *, shadow_pcf, noise_seed, light_chunk):
+def _medium_at(params, scene, maps, points, directions, *, shadow_pcf, noise_seed, light_chunk, light_loop):
     """(σ_t [P], s [P, 3]) at world ``points`` [P, 3] seen along ``directions`` [P, 3]."""
     sigma_t = extinction(params, points, noise_seed=noise_seed)
     visibility = None
     if maps is not None:
         visibility = shadow_factor(maps, points, jnp.zeros_like(points), pcf=shadow_pcf)
-    return sigma_t, in_scattering(params, scene.lights, points, directions, sigma_t, visibility, light_chunk=light_chunk)
+    return sigma_t, in_scattering(params, scene.lights, points, directions, sigma_t, visibility, light_chunk=light_chunk,
+                                  light_loop=light_loop)
 
 
 def _pixel_depth(inputs, extent, background_fogged):
@@ -244,6 +296,11 @@ def _pixel_depth(inputs, extent, background_fogged):
 # The froxel pass
 
 
+def default_slice_batch() -> int:
+    """Froxel slices lit together when ``slice_batch`` is none: SLICE_BATCH_GPU on GPUs, 1 on CPUs."""
+    return SLICE_BATCH_GPU if jax.default_backend() == "gpu" else 1
+
+
 def froxel_rays(camera, *, froxels_x: int, froxels_y: int):
     """Rays through the froxel columns' centres: ``(origins, directions, depth_to_t)`` [Y, X, 3], [Y, X, 3],
     [Y, X] as :func:`gpupro.media.pixel_rays` for an image of ``froxels_y`` × ``froxels_x`` (row 0 at the top)."""
@@ -251,12 +308,15 @@ def froxel_rays(camera, *, froxels_x: int, froxels_y: int):
 
 
 def froxel_medium(params, scene, jitter, extent, maps=None, *, froxels_x: int, froxels_y: int, slices: int,
-                  depth_exponent: float, shadow_pcf: int, noise_seed: int, light_chunk: int | None):
+                  depth_exponent: float, shadow_pcf: int, noise_seed: int, light_chunk: int | None,
+                  slice_batch: int | None, light_loop: str):
     """Per-froxel (s [Y, X, N, 3], σ_t [Y, X, N]) sampled at depth Z((k + ``jitter``) / N) of each slice k.
 
     ``jitter`` ξ scalar in [0, 1); ``extent`` R, the fog range (world units); ``maps``: None or the
     :class:`gpupro.techniques.shadows.shadow_maps.ShadowMaps` of the first lights. One slice of Y·X points
-    is evaluated at a time (``lax.map``); static grid and medium options as the technique's.
+    is evaluated ``slice_batch`` slices at a time (``lax.map``; None: every slice at once with the light-loop
+    kernel, which keeps no [points, lights] intermediates, else :func:`default_slice_batch`); static grid and
+    medium options as the technique's.
     """
     origins, directions, depth_to_t = froxel_rays(scene.camera, froxels_x=froxels_x, froxels_y=froxels_y)
     depths = slice_depth((jnp.arange(slices, dtype=jnp.float32) + jitter) / slices, extent, depth_exponent=depth_exponent)
@@ -265,9 +325,11 @@ def froxel_medium(params, scene, jitter, extent, maps=None, *, froxels_x: int, f
     def one_slice(depth):
         points = (origins + directions * (depth * depth_to_t)[..., None]).reshape(-1, 3)
         return _medium_at(params, scene, maps, points, rays, shadow_pcf=shadow_pcf, noise_seed=noise_seed,
-                          light_chunk=light_chunk)
+                          light_chunk=light_chunk, light_loop=light_loop)
 
-    sigma_t, scattering = jax.lax.map(one_slice, depths)  # [N, Y·X], [N, Y·X, 3]
+    kernel = resolve_light_loop(light_loop=light_loop, applies=maps is None, caller="volumetric_fog") == "kernel"
+    batch = min(slice_batch or (slices if kernel else default_slice_batch()), slices)
+    sigma_t, scattering = jax.lax.map(one_slice, depths, batch_size=batch)  # [N, Y·X], [N, Y·X, 3]
     return (jnp.moveaxis(scattering, 0, 1).reshape(froxels_y, froxels_x, slices, 3),
             jnp.moveaxis(sigma_t, 0, 1).reshape(froxels_y, froxels_x, slices))
 
@@ -322,7 +384,8 @@ def init_state(scene, *, froxels_x, froxels_y, slices, fog_range, **_):
 
 
 def apply(params, inputs, scene, state, *, froxels_x, froxels_y, slices, depth_exponent, fog_range, background_fogged,
-          slice_integral, temporal, temporal_blend, shadowed_lights, shadow_resolution, shadow_pcf, noise_seed, light_chunk):
+          slice_integral, temporal, temporal_blend, shadowed_lights, shadow_resolution, shadow_pcf, noise_seed, light_chunk,
+          light_loop, slice_batch):
     """Froxel volume (density, lighting), front-to-back accumulation, application to ``hdr`` [H, W, 3]
     at ``view_depth`` [H, W] → ``hdr_fog_volume`` [H, W, 3] and ``froxel_volume`` [Y, X, N + 1, 4] (S, T); ``state``
     from :func:`init_state` or the last frame (None: a first frame)."""
@@ -333,7 +396,8 @@ def apply(params, inputs, scene, state, *, froxels_x, froxels_y, slices, depth_e
     maps = _shadow_maps(scene, shadowed_lights, shadow_resolution)
     grid = dict(froxels_x=froxels_x, froxels_y=froxels_y, slices=slices, depth_exponent=depth_exponent)
     scattering, sigma_t = froxel_medium(params, scene, jitter, extent, maps, **grid, shadow_pcf=shadow_pcf,
-                                        noise_seed=noise_seed, light_chunk=light_chunk)
+                                        noise_seed=noise_seed, light_chunk=light_chunk, slice_batch=slice_batch,
+                                        light_loop=light_loop)
 
     origins, directions, depth_to_t = froxel_rays(camera, froxels_x=froxels_x, froxels_y=froxels_y)
     boundaries = slice_depth(jnp.arange(slices + 1, dtype=jnp.float32) / slices, extent, depth_exponent=depth_exponent)
@@ -368,7 +432,8 @@ def apply(params, inputs, scene, state, *, froxels_x, froxels_y, slices, depth_e
 # The reference: a per-pixel ray march
 
 
-def march(params, scene, depth, maps=None, *, steps: int, shadow_pcf: int, noise_seed: int, light_chunk: int | None):
+def march(params, scene, depth, maps=None, *, steps: int, shadow_pcf: int, noise_seed: int, light_chunk: int | None,
+          light_loop: str):
     """(S [H, W, 3], T [H, W]) along each pixel's ray from the eye to view ``depth`` [H, W] (world units):
     ``steps`` equal steps, the medium sampled at each midpoint and integrated exactly over the step
     (the ``"exact"`` slice integral). ``maps``: None or the shadow maps of the first lights."""
@@ -381,7 +446,7 @@ def march(params, scene, depth, maps=None, *, steps: int, shadow_pcf: int, noise
         accumulated, optical = carry
         points = origins + directions * ((i + 0.5) * step_length)[:, None]
         sigma_t, scattering = _medium_at(params, scene, maps, points, directions, shadow_pcf=shadow_pcf,
-                                         noise_seed=noise_seed, light_chunk=light_chunk)
+                                         noise_seed=noise_seed, light_chunk=light_chunk, light_loop=light_loop)
         tau = sigma_t * step_length
         weight = jnp.exp(-optical) * step_length * _one_minus_exp_over(tau)
         return (accumulated + weight[:, None] * scattering, optical + tau), None
@@ -392,13 +457,13 @@ def march(params, scene, depth, maps=None, *, steps: int, shadow_pcf: int, noise
 
 
 def apply_reference(params, inputs, scene, *, steps, fog_range, background_fogged, shadowed_lights, shadow_resolution,
-                    shadow_pcf, noise_seed, light_chunk):
+                    shadow_pcf, noise_seed, light_chunk, light_loop):
     """Per-pixel ray march of the medium and lights of ``volumetric_fog`` → ``hdr_fog_volume`` [H, W, 3]."""
     extent = _fog_range(scene.camera, fog_range)
     depth = _pixel_depth(inputs, extent, background_fogged)
     maps = _shadow_maps(scene, shadowed_lights, shadow_resolution)
     scattering, transmittance = march(params, scene, depth, maps, steps=steps, shadow_pcf=shadow_pcf,
-                                      noise_seed=noise_seed, light_chunk=light_chunk)
+                                      noise_seed=noise_seed, light_chunk=light_chunk, light_loop=light_loop)
     pixels = float(depth.size * steps)
     counters = {"march_steps": jnp.float32(pixels), "light_evaluations": jnp.float32(pixels * scene.lights.count)}
     return {"hdr_fog_volume": inputs["hdr"] * transmittance[..., None] + scattering}, counters
@@ -421,6 +486,9 @@ MEDIUM_OPTIONS = (
     Option("shadow_pcf", 3, integer(1, odd=True), "box PCF kernel width of the shadow lookups (texels)"),
     Option("noise_seed", 0, integer(0), "seed of the noise's permutation table"),
     Option("light_chunk", None, optional(integer(1)), "lights per scan step (peak [points, chunk, 3]); none: 32 on GPUs, 64 on CPUs"),
+    Option("light_loop", "auto", one_of(*LIGHT_LOOPS),
+           "scan (XLA, chunks of lights), kernel (one Pallas kernel over blocks of points, no shadows) or auto "
+           "(the kernel on GPUs when no light is shadowed)"),
 )
 PARAMS = (
     Param("density", 0.02, "1/world unit", "constant extinction coefficient ρ_c", lower=0.0),
@@ -460,6 +528,9 @@ register(Technique(
                "chapter: in-scattering × slice length (Listing 3.2); exact: (1 − e^{−σ_t Δt}) / σ_t"),
         Option("temporal", True, BOOLEAN, "jitter the slice samples per frame and blend with the reprojected history"),
         Option("temporal_blend", 0.1, number(0.0, 1.0, strict_lo=True), "weight β of the current frame in the blend"),
+        Option("slice_batch", None, optional(integer(1)),
+               "slices lit together per step (the scan's peak [X·Y·batch, light_chunk, 3]); none: every slice with the "
+               f"kernel, else {SLICE_BATCH_GPU} on GPUs and 1 on CPUs"),
     ) + MEDIUM_OPTIONS,
     params=PARAMS,
     counters=MEDIUM_COUNTERS + (

@@ -41,6 +41,12 @@ Lookup of point p with unit normal n for light k (one code path for the three ki
 - points outside a spot or directional map (|x_ndc| or |y_ndc| > 1), behind the light, or beyond the
   near/far planes are lit (v = 1): they are outside the light's cone or range, or no caster exists there.
 
+Capsule lights (:mod:`gpupro.scene.lights`) get no shadow map: a segment light has no single centre of
+projection, and a map from its centre would shadow it as a point light, a wrong picture for any
+capsule longer than a point. :func:`build_shadow_maps` refuses one among the first ``count`` lights
+with a ValueError naming it; where the lights are traced (inside a jitted frame, their kinds unknown
+until run time) its visibility is NaN instead, so that the image cannot pass for a shadowed one.
+
 Maps are drawn without back-face culling by default: open geometry (quads, planes, foliage cards)
 must cast shadows from both sides, and closed meshes then store their front faces, which the normal
 offset already protects from acne. ``cull_backfaces=True`` is available for closed scenes.
@@ -58,7 +64,7 @@ import numpy as np
 from gpupro.numerics import einsum, matmul
 from gpupro.raster import rasterize
 from gpupro.scene.camera import Camera, look_at, perspective, to_clip
-from gpupro.scene.lights import POINT, SPOT, Lights
+from gpupro.scene.lights import CAPSULE, POINT, SPOT, Lights
 from gpupro.technique import BOOLEAN, Buffer, Counter, Option, Technique, integer, number, optional, register
 from gpupro.techniques.raster.gbuffer import SURFACE
 
@@ -235,7 +241,7 @@ def render_shadow_map(view_proj, positions, faces, *, resolution: int, cull_back
 def _build(lights, positions, faces, camera, scene_lo, scene_hi, *, resolution, max_distance, cull_backfaces) -> ShadowMaps:
     matrices = light_matrices(lights, camera, scene_lo, scene_hi, max_distance=max_distance)
     count = lights.kind.shape[0]
-    needed = (lights.kind[:, None] == POINT) | (jnp.arange(6) == 0)[None, :]
+    needed = ((lights.kind[:, None] == POINT) | (jnp.arange(6) == 0)[None, :]) & (lights.kind != CAPSULE)[:, None]
 
     def render(view_proj):
         return render_shadow_map(view_proj, positions, faces, resolution=resolution, cull_backfaces=cull_backfaces)
@@ -266,7 +272,7 @@ def build_shadow_maps(
     """Renders shadow maps for the first ``count`` lights (order shadow-casting lights first).
 
     Args:
-      lights: N ≥ ``count`` lights.
+      lights: N ≥ ``count`` lights, none of the first ``count`` a capsule (module docstring).
       mesh: a :class:`gpupro.scene.Mesh` (``positions`` [V, 3], ``faces`` [F, 3]): all shadow casters.
       camera: the view whose frustum directional maps cover.
       count: K, how many lights get maps (static).
@@ -284,6 +290,10 @@ def build_shadow_maps(
     if int(resolution) <= 0:
         raise ValueError(f"build_shadow_maps: resolution must be a positive texel count, got {resolution}")
     first = jax.tree_util.tree_map(lambda a: a[:count], lights)
+    if not isinstance(first.kind, jax.core.Tracer) and (np.asarray(first.kind) == CAPSULE).any():
+        light = int(np.argmax(np.asarray(first.kind) == CAPSULE))
+        raise ValueError(f"build_shadow_maps: light {light} is a capsule light, which shadow maps cannot shadow "
+                         f"(no single centre of projection); put capsules after the first {count} lights")
     positions = jnp.asarray(mesh.positions, jnp.float32)
     if scene_bounds is None:
         scene_bounds = (jnp.min(positions, axis=0), jnp.max(positions, axis=0))
@@ -362,7 +372,8 @@ def shadow_factor(
     ``positions`` float32 [P, 3] (world units) with unit ``normals`` [P, 3] (zero normals get no
     offset); ``bias``: constant window-depth bias; ``normal_offset``: the normal offset in units of
     ``pcf / 2`` texels at the point; ``pcf`` (static, odd): box PCF kernel width in texels, 1 for a
-    single nearest-texel comparison (visibility in {0, 1}). Equations in the module docstring.
+    single nearest-texel comparison (visibility in {0, 1}). Equations in the module docstring. NaN for
+    capsule lights, which have no map (module docstring).
     For deferred shading, reshape to [H, W, K]. Compiled once per shape and ``pcf``.
     """
     positions = jnp.asarray(positions, jnp.float32)
@@ -390,7 +401,8 @@ def _shadow_factor(maps, positions, normals, *, bias, normal_offset, pcf):
     light = jnp.arange(count)[:, None, None]
     stored = maps.depths[light, face[..., None, None], row, column]  # [P, K, pcf, pcf]
     lit = (depth[..., None, None] - bias <= stored).astype(jnp.float32)
-    return jnp.where(inside, jnp.mean(lit, axis=(-2, -1)), 1.0)
+    visibility = jnp.where(inside, jnp.mean(lit, axis=(-2, -1)), 1.0)
+    return jnp.where((maps.kind == CAPSULE)[None], jnp.nan, visibility)
 
 
 def apply(params, inputs, scene, *, count, resolution, pcf, max_distance, bias, normal_offset, cull_backfaces):
