@@ -12,7 +12,8 @@
 
 The heavier of these (gradients, jit against eager, reference, capacities) are marked ``slow`` for the
 families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget, the capacity and gradient
-cases of the :data:`TWINS` and the eager runs of :data:`EAGER_SLOW`; ``pytest -m slow
+cases of the :data:`TWINS`, the eager runs of :data:`EAGER_SLOW`, the gradient cases of
+:data:`GRADIENT_SLOW` and the :data:`FURTHER_CAPACITIES`; ``pytest -m slow
 tests/test_techniques.py`` runs them (the GPU machine's whole-suite run includes them).
 """
 
@@ -66,12 +67,19 @@ bodies one by one (35–90 s each on the 2-core CPU): their jit-against-eager ca
 only. ``deferred`` and ``tiled_deferred`` keep the shared light loop's eager run in the default suite."""
 
 
+GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker"}
+"""Culling passes whose gradients flow through the shared light loop only (culling is discontinuous in
+the lights), as those of ``deferred``, ``tiled_deferred`` and ``clustered_deferred`` do in the default
+suite: their gradient cases (20–30 s each on the 2-core CPU) run with ``-m slow``."""
+
+
 def _cases(cases, *, slow=frozenset()):
     """``cases`` (technique ids, or tuples starting with one) with the ``slow`` mark on those of
-    :data:`SLOW_FAMILIES` and of ``slow``."""
+    :data:`SLOW_FAMILIES`, on those whose technique id is in ``slow`` and on those in ``slow``."""
     first = lambda case: case[0] if isinstance(case, tuple) else case
     return [pytest.param(*(case if isinstance(case, tuple) else (case,)), marks=pytest.mark.slow)
-            if TECHNIQUES[first(case)].family in SLOW_FAMILIES or first(case) in slow else case for case in cases]
+            if TECHNIQUES[first(case)].family in SLOW_FAMILIES or first(case) in slow or case in slow else case
+            for case in cases]
 
 
 def _example(technique_id, outputs=None, **options):
@@ -160,7 +168,7 @@ def _agree(analytic, numeric, rtol=0.05):
     return abs(analytic - numeric) <= rtol * max(abs(analytic), abs(numeric), 1e-3)
 
 
-@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED, slow=TWINS))
+@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED, slow=TWINS | GRADIENT_SLOW))
 def test_parameters_and_light_values_have_correct_gradients(technique_id):
     """One reverse-mode gradient per technique, against central differences: along a random direction
     in each declared continuous parameter (moved away from zero, where tone curves and clamps have
@@ -225,9 +233,12 @@ def test_technique_equals_its_reference(technique_id, scene):
 
 
 CAPACITIES = [(t.id, c) for t in TECHNIQUES.values() for c in t.capacities]
+FURTHER_CAPACITIES = {(t.id, c) for t in TECHNIQUES.values() for c in t.capacities[1:]}
+"""A technique's capacities after its first: their growth goes through the same entry points as the
+first's, so the default suite grows one capacity per technique and ``-m slow`` the rest."""
 
 
-@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
+@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]
