@@ -162,6 +162,9 @@ def test_bad_options_are_refused_naming_them(scene):
     with pytest.raises(ValueError, match=r"shadowed_lights: 3 shadowed lights but the scene has 2"):
         vf.apply(_params(), _inputs(np.ones(RES)), scene, None,
                  **validate_options(get("volumetric_fog"), {**GRID, "shadowed_lights": 3}))
+    with pytest.raises(ValueError, match=r"volumetric_fog: the light-loop kernel takes unshadowed lights only"):
+        jax.eval_shape(lambda: vf.apply(_params(), _inputs(np.ones(RES)), scene, None, **validate_options(
+            get("volumetric_fog"), {**GRID, "shadowed_lights": 1, "light_loop": "kernel"})))
 
 
 def test_in_scattering_kernel_equals_the_scan_with_its_gradients():

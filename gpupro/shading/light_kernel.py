@@ -127,13 +127,18 @@ def _radiance(point, terms: dict, light: dict):
                  for d, f0, c in zip(terms["diffuse"], terms["f0"], light["color"]))
 
 
-def _surface_term(column: list, light: dict):
-    """:func:`_radiance` of the :func:`_pixel_arrays` columns (position, then the view terms)."""
-    point = tuple(column[:3])
+def _surface_of(column: list):
+    """``(point, terms)``: the component blocks of the :func:`_pixel_arrays` columns (position, then the
+    view terms), as :func:`_radiance` takes them."""
     terms = dict(zip(_TERMS_SCALAR, column[3:6]))
     for k, name in enumerate(_TERMS_VECTOR):
         terms[name] = tuple(column[6 + 3 * k:9 + 3 * k])
-    return _radiance(point, terms, light)
+    return tuple(column[:3]), terms
+
+
+def _surface_term(column: list, light: dict):
+    """:func:`_radiance` of the :func:`_pixel_arrays` columns."""
+    return _radiance(*_surface_of(column), light)
 
 
 def _kernel(*refs, n_columns: int, n_steps: int, lights_per_step: int, term):
@@ -236,11 +241,7 @@ def _list_kernel(*refs, n_lights: int, capacity: int):
     pixel_refs = refs[:_PIXEL_ARRAYS]
     rows_ref, used_ref, slots_ref = refs[_PIXEL_ARRAYS:_PIXEL_ARRAYS + 3]
     light_refs, out_refs = refs[_PIXEL_ARRAYS + 3:-4], refs[-4:]
-    column = [r[...] for r in pixel_refs]  # [B]
-    point = tuple(column[:3])
-    terms = dict(zip(_TERMS_SCALAR, column[3:6]))
-    for k, name in enumerate(_TERMS_VECTOR):
-        terms[name] = tuple(column[6 + 3 * k:9 + 3 * k])
+    point, terms = _surface_of([r[...] for r in pixel_refs])  # [B] blocks
     first_slot = rows_ref[...] * capacity  # [B]: where each pixel's list starts in the flattened lists
 
     def step(j, carry):

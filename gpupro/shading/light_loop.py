@@ -135,15 +135,21 @@ def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_c
     return total
 
 
-def resolve_light_loop(*, light_loop: str, applies: bool, caller: str) -> str:
+def resolve_light_loop(*, light_loop: str, applies: bool, requires: str, caller: str) -> str:
     """``light_loop`` ("auto", "scan" or "kernel") resolved to "scan" or "kernel": "auto" takes the kernel on
-    GPUs where it ``applies`` (for surfaces: GGX and no shadow factors); an explicit "kernel" where it does
-    not is an error naming ``caller``."""
+    GPUs where it ``applies``; an explicit "kernel" where it does not is an error naming ``caller`` and what
+    the kernel ``requires``."""
     if light_loop == "auto":
         return "kernel" if applies and jax.default_backend() == "gpu" else "scan"
     if light_loop == "kernel" and not applies:
-        raise ValueError(f"{caller}: the light-loop kernel does not apply here (it takes GGX and no shadow factors)")
+        raise ValueError(f"{caller}: the light-loop kernel takes {requires} only (use 'scan' or 'auto')")
     return light_loop
+
+
+def _surface_light_loop(light_loop: str, shadow, distribution: str, caller: str) -> str:
+    """:func:`resolve_light_loop` for surface shading, whose kernels take GGX and no shadow factors."""
+    return resolve_light_loop(light_loop=light_loop, applies=shadow is None and distribution == "ggx",
+                              requires="GGX and no shadow factors", caller=caller)
 
 
 def accumulate_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, *, shadow=None,
@@ -162,8 +168,7 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     shared by deferred and forward shading.
     """
     points = jnp.asarray(points, jnp.float32)
-    applies = shadow is None and distribution == "ggx"
-    if resolve_light_loop(light_loop=light_loop, applies=applies, caller="accumulate_lights") == "kernel" and lights.count > 0:
+    if _surface_light_loop(light_loop, shadow, distribution, "accumulate_lights") == "kernel" and lights.count > 0:
         from gpupro.shading.light_kernel import fused_accumulate_lights  # it builds on this module
 
         terms = view_terms(normals, views, base_color=base_color, roughness=roughness, metallic=metallic,
@@ -231,8 +236,7 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     else:  # −1 picks an appended empty row
         lists = jnp.concatenate([lists, jnp.full((1, capacity), -1, jnp.int32)])
         rows = jnp.where(jnp.asarray(list_of_group) < 0, lists.shape[0] - 1, jnp.asarray(list_of_group, jnp.int32))
-    light_loop = resolve_light_loop(light_loop=light_loop, applies=shadow is None and distribution == "ggx",
-                                    caller="accumulate_light_lists")
+    light_loop = _surface_light_loop(light_loop, shadow, distribution, "accumulate_light_lists")
     return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
 
 

@@ -214,6 +214,12 @@ def _fused_backward(interpret, saved, cotangent):
 fused_scattered_light.defvjp(_fused_forward, _fused_backward)
 
 
+def _fog_light_loop(light_loop: str, *, shadowed: bool) -> str:
+    """:func:`resolve_light_loop` for the fog, whose kernel takes no shadowed lights."""
+    return resolve_light_loop(light_loop=light_loop, applies=not shadowed, requires="unshadowed lights",
+                              caller="volumetric_fog")
+
+
 def in_scattering(params, lights: Lights, points, directions, sigma_t, visibility=None, *, light_chunk: int | None = None,
                   light_loop: str = "auto"):
     """In-scattered radiance per unit length s [P, 3] (W/(m³ sr)) at world ``points`` [P, 3] towards an eye
@@ -224,8 +230,7 @@ def in_scattering(params, lights: Lights, points, directions, sigma_t, visibilit
     ``light_loop`` (static): "scan", "kernel" (:func:`fused_scattered_light`, no shadows) or "auto" (the
     kernel on GPUs where no shadows apply).
     """
-    loop = resolve_light_loop(light_loop=light_loop, applies=visibility is None, caller="volumetric fog")
-    if loop == "kernel" and lights.count > 0:
+    if _fog_light_loop(light_loop, shadowed=visibility is not None) == "kernel" and lights.count > 0:
         total = fused_scattered_light(points, directions, params["g"], lights)
     else:
         total = _scattered_scan(points, directions, params["g"], lights, visibility, light_chunk)
@@ -327,7 +332,7 @@ def froxel_medium(params, scene, jitter, extent, maps=None, *, froxels_x: int, f
         return _medium_at(params, scene, maps, points, rays, shadow_pcf=shadow_pcf, noise_seed=noise_seed,
                           light_chunk=light_chunk, light_loop=light_loop)
 
-    kernel = resolve_light_loop(light_loop=light_loop, applies=maps is None, caller="volumetric_fog") == "kernel"
+    kernel = _fog_light_loop(light_loop, shadowed=maps is not None) == "kernel"
     batch = min(slice_batch or (slices if kernel else default_slice_batch()), slices)
     sigma_t, scattering = jax.lax.map(one_slice, depths, batch_size=batch)  # [N, Y·X], [N, Y·X, 3]
     return (jnp.moveaxis(scattering, 0, 1).reshape(froxels_y, froxels_x, slices, 3),
