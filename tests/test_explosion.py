@@ -228,6 +228,19 @@ def test_empty_space_skipping_changes_the_cost_only():
     assert alpha.max() > 0.99 and (alpha == 0).sum() > 100
 
 
+def test_tiles_marched_together_give_the_image_and_work_of_one_at_a_time():
+    """``tile_batch`` (the GPU default marches every tile at once) changes neither the image nor the counted
+    work: a batched tile's skipped iterations become selects of the unchanged state."""
+    run = jax.jit(lambda batch: E.render_explosion(PARAMS, WALL, CAMERA, extra_step=True, trace_steps=16,
+                                                   hull_octaves=1, opacity_threshold=0.99, tile=8, tile_batch=batch,
+                                                   **STATIC), static_argnums=0)
+    (hdr_one, alpha_one, work_one), (hdr, alpha, work) = run(1), run(16)
+    np.testing.assert_allclose(np.asarray(hdr), np.asarray(hdr_one), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(alpha), np.asarray(alpha_one), atol=1e-6)
+    assert {k: int(v) for k, v in work.items()} == {k: int(v) for k, v in work_one.items()}
+    assert int(work_one["early_outs"]) > 0
+
+
 @pytest.mark.parametrize("threshold", [0.9, 0.99])
 def test_early_out_changes_pixels_by_at_most_one_minus_threshold(threshold):
     """Stopping at opacity θ leaves out at most T ≤ 1 − θ of the rest: the opacity changes by ≤ 1 − θ and

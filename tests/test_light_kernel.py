@@ -10,8 +10,8 @@ import pytest
 
 from gpupro.scene.lights import CAPSULE, POINT, make_lights
 from gpupro.shading.brdfs import view_terms
-from gpupro.shading.light_kernel import fused_accumulate_lights
-from gpupro.shading.light_loop import accumulate_light_lists, accumulate_lights
+from gpupro.shading.light_kernel import block_light_lists, fused_accumulate_lights
+from gpupro.shading.light_loop import accumulate_light_lists, accumulate_lights, light_reaches
 
 P, N = 200, 37  # neither a multiple of the block (128) nor of the lights per step (4)
 
@@ -103,3 +103,21 @@ def test_light_list_kernel_equals_the_bucketed_xla_loop():
         *surfaces, dataclasses.replace(lights, color=c), jnp.asarray(lists), list_of_group=rows,
         light_loop=loop)[0]))(lights.color)
     np.testing.assert_allclose(np.asarray(grad("kernel")), np.asarray(grad("scan")), rtol=1e-6)
+
+
+def test_block_light_lists_hold_every_light_that_reaches_a_point_of_the_block():
+    """Blocks of 16 points sorted along x (so their boxes are narrow): each block's list holds every
+    light that truly reaches one of its points, in index order, and the small lights are culled."""
+    points = jnp.asarray(np.sort(np.asarray(_surfaces()[0]), axis=0))  # x sorted: compact blocks
+    lights = _lights()
+    lists, rows = block_light_lists(points, lights, block_pixels=16)
+    lists, rows = np.asarray(lists), np.asarray(rows)
+    assert lists.shape == (-(-P // 16), N) and rows.tolist() == [p // 16 for p in range(P)]
+    reaches = np.asarray(light_reaches(lights, points))
+    for block, listed in enumerate(lists):
+        count = int(np.sum(listed >= 0))
+        assert np.all(listed[:count] >= 0) and np.all(listed[count:] == -1)
+        assert np.all(np.diff(listed[:count]) > 0)
+        needed = np.flatnonzero(reaches[rows == block].any(axis=0))
+        assert set(needed) <= set(listed[:count].tolist()), block
+    assert np.mean(np.sum(lists >= 0, axis=1)) < 0.8 * N  # some lights miss some blocks

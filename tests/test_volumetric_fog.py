@@ -191,3 +191,34 @@ def test_in_scattering_kernel_equals_the_scan_with_its_gradients():
     for got, expected in zip(grad(*args, True), grad(*args, False)):
         assert float(jnp.max(jnp.abs(expected))) > 0
         np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-5, atol=1e-6)
+
+
+def test_froxel_blocks_invert_on_a_grid_of_partial_blocks():
+    values = jnp.asarray(np.random.default_rng(5).normal(size=(10, 13, 6, 2)), jnp.float32)
+    flat = vf.froxel_blocks(values)
+    assert flat.shape == (10 * 16 * 8, 2)  # blocks of 2 × 16 × 8
+    np.testing.assert_array_equal(np.asarray(vf.from_froxel_blocks(flat, (10, 13, 6))), np.asarray(values))
+    first = np.asarray(flat[:256]).reshape(2, 16, 8, 2)  # the first block: rows [0, 2), columns [0, 16), slices [0, 8)
+    np.testing.assert_array_equal(first[:, :13, :6], np.asarray(values[:2, :13, :6]))
+    np.testing.assert_array_equal(first[:, 13:, :6], np.broadcast_to(np.asarray(values[:2, 12:13, :6]), (2, 3, 6, 2)))
+
+
+def test_culled_froxel_kernel_equals_the_scan(scene):
+    """The froxel medium lit by the kernel (interpreted), whose blocks walk only the lights near them,
+    equals the scan over every light, on a grid of partial blocks with small lights."""
+    lights = gp.scene.make_lights([0, 1, 0, 0], position=[[2.0, 1.0, 2.0], [4.0, 4.5, 3.0], [1.0, 2.0, 8.0],
+                                                           [4.0, 3.0, 12.0]],
+                                  direction=[[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]],
+                                  color=[[4.0, 3.0, 2.0]] * 4, range=[1.5, 3.0, 2.0, 1.0],
+                                  inner_angle_degrees=[20.0] * 4, outer_angle_degrees=[40.0] * 4)
+    lit = scene.replace(lights=lights)
+    grid = dict(froxels_x=13, froxels_y=10, slices=6, depth_exponent=3.0, shadow_pcf=1, noise_seed=0, light_chunk=None,
+                slice_batch=None)
+    medium = lambda loop: vf.froxel_medium(_params(), lit, 0.5, RANGE, **grid, light_loop=loop)
+    (kernel_s, kernel_t), (scan_s, scan_t) = medium("kernel"), medium("scan")  # the kernel interpreted off GPUs
+    assert float(jnp.max(scan_s)) > 0.0
+    np.testing.assert_array_equal(np.asarray(kernel_t), np.asarray(scan_t))
+    np.testing.assert_allclose(np.asarray(kernel_s), np.asarray(scan_s), rtol=1e-5, atol=1e-6 * float(jnp.max(scan_s)))
+    points, _ = vf.froxel_points(lit.camera, 0.5, RANGE, froxels_x=13, froxels_y=10, slices=6, depth_exponent=3.0)
+    lists, _ = vf.block_light_lists(vf.froxel_blocks(points), lights, block_pixels=256)
+    assert 0 < float(jnp.mean(jnp.sum(lists >= 0, axis=1))) < 2.0  # each block walks few of the 4 lights

@@ -39,6 +39,7 @@ from jax.experimental import pallas as pl
 
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
+from gpupro.shading.light_bounds import box_meets_light
 from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, nearest_on_segment, spot_falloff
 from gpupro.shading.light_loop import light_radiance, pad_lights, sum_over_lights
 
@@ -237,56 +238,96 @@ def _reaches(point, light: dict):
     return (light["kind"] == DIRECTIONAL) | (in_range & ((light["kind"] != SPOT) | in_cone))
 
 
-def _list_kernel(*refs, n_lights: int, capacity: int):
-    pixel_refs = refs[:_PIXEL_ARRAYS]
-    rows_ref, used_ref, slots_ref = refs[_PIXEL_ARRAYS:_PIXEL_ARRAYS + 3]
-    light_refs, out_refs = refs[_PIXEL_ARRAYS + 3:-4], refs[-4:]
-    point, terms = _surface_of([r[...] for r in pixel_refs])  # [B] blocks
-    first_slot = rows_ref[...] * capacity  # [B]: where each pixel's list starts in the flattened lists
+def _list_kernel(*refs, n_columns: int, n_lights: int, capacity: int, term, count_reached: bool):
+    column_refs = refs[:n_columns]
+    rows_ref, used_ref, slots_ref = refs[n_columns:n_columns + 3]
+    light_refs, out_refs = refs[n_columns + 3:-(4 if count_reached else 3)], refs[-(4 if count_reached else 3):]
+    column = [r[...] for r in column_refs]  # [B] blocks
+    first_slot = rows_ref[...] * capacity  # [B]: where each point's list starts in the flattened lists
 
     def step(j, carry):
         index = slots_ref[first_slot + j]  # [B] gathered light indices (n_lights: the zero light)
         light = _light_of([r[index] for r in light_refs])
-        rgb = _radiance(point, terms, light)
-        reached = _reaches(point, light) & (index < n_lights)
-        return tuple(t + c for t, c in zip(carry[:3], rgb)) + (carry[3] + reached.astype(jnp.float32),)
+        total = tuple(t + c for t, c in zip(carry, term(column, light)))
+        if count_reached:
+            reached = _reaches(tuple(column[:3]), light) & (index < n_lights)
+            total += (carry[3] + reached.astype(jnp.float32),)
+        return total
 
-    zeros = jnp.zeros((pixel_refs[0].shape[0],), jnp.float32)
+    zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
     # The block walks its longest list; shorter lists read the zero light past their end.
-    total = jax.lax.fori_loop(0, jnp.max(used_ref[...]), step, (zeros,) * 4)
+    total = jax.lax.fori_loop(0, jnp.max(used_ref[...]), step, (zeros,) * len(out_refs))
     for ref, value in zip(out_refs, total):
         ref[...] = value
 
 
-def light_list_sums(points, terms: dict, lights: Lights, lists, rows, *, block_pixels: int = BLOCK_PIXELS,
-                    interpret: bool = False):
-    """Σ over each point's light list of brdf · E⊥ · max(n·l, 0), as one kernel over blocks of points:
-    the fast form of :func:`gpupro.shading.light_loop.accumulate_light_lists` (GGX, no shadows).
+def list_sums(columns: list, lights: Lights, term, lists, rows, *, block_pixels: int = BLOCK_PIXELS,
+              count_reached: bool = False, interpret: bool = False):
+    """Σ over each point's light list of ``term(column, light)``, as one kernel over blocks of points.
 
-    ``points`` [P, 3]; ``terms`` the points' GGX :func:`gpupro.shading.brdfs.view_terms` ([P, 3] and
-    [P]); ``lights`` N lights; ``lists`` int32 [R, C] light indices, −1 in empty slots; ``rows`` int32
-    [P]: the row of ``lists`` each point evaluates. A block of ``block_pixels`` consecutive points loops
-    over its longest list (up to the last filled slot), so neighbouring points should share lists
-    (tiles, clusters). Returns ``(radiance [P, 3] in W/(m² sr), reached [P] float32)``: ``reached``
-    counts the listed lights whose influence truly reaches each point. Not differentiable by itself.
+    ``columns``: per-point float32 arrays [P], the point's position (three components) first, then
+    whatever ``term`` reads; ``term``: a function of the columns' blocks [B] and a light's blocks [B]
+    by name (:func:`_light_of`; the zero light of empty slots has zero colour) → (R, G, B) blocks [B];
+    ``lights`` N lights; ``lists`` int32 [R, C] light indices, −1 in empty slots; ``rows`` int32 [P]:
+    the row of ``lists`` each point evaluates. A block of ``block_pixels`` consecutive points loops over
+    its longest list (up to the last filled slot), so neighbouring points should share lists (tiles,
+    clusters, froxel blocks). Returns radiance [P, 3] and, with ``count_reached`` (static), [P] float32
+    counts of the listed lights whose influence truly reaches each point. Not differentiable by itself.
     """
-    n_points, capacity = points.shape[0], lists.shape[1]
+    n_points, capacity = columns[0].shape[0], lists.shape[1]
     padded = -(-n_points // block_pixels) * block_pixels
     lights = pad_lights(lights, count=1)  # index N: the zero light of empty slots
     slots = jnp.where(lists < 0, lights.count - 1, lists).astype(jnp.int32)
     used = jnp.max(jnp.where(lists >= 0, jnp.arange(1, capacity + 1, dtype=jnp.int32), 0), axis=1)
     pad = lambda x: jnp.pad(x, (0, padded - n_points))
-    rows = pad(jnp.asarray(rows, jnp.int32))
-    pixel_arrays = _pixel_arrays(points, terms, padded) + [rows, pad(used[rows[:n_points]])]
+    rows = jnp.asarray(rows, jnp.int32)
+    point_arrays = [pad(jnp.asarray(c, jnp.float32)) for c in columns] + [pad(rows), pad(used[rows])]
     light_arrays = _light_arrays(lights)
-    pixel_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
+    n_out = 4 if count_reached else 3
+    point_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
     whole = lambda a: pl.BlockSpec(a.shape, lambda i: (0,))
     out = pl.pallas_call(
-        functools.partial(_list_kernel, n_lights=lights.count - 1, capacity=capacity),
-        out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * 4,
+        functools.partial(_list_kernel, n_columns=len(columns), n_lights=lights.count - 1, capacity=capacity,
+                          term=term, count_reached=count_reached),
+        out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * n_out,
         grid=(padded // block_pixels,),
-        in_specs=[pixel_spec] * len(pixel_arrays) + [whole(slots.reshape(-1))] + [whole(a) for a in light_arrays],
-        out_specs=[pixel_spec] * 4,
+        in_specs=[point_spec] * len(point_arrays) + [whole(slots.reshape(-1))] + [whole(a) for a in light_arrays],
+        out_specs=[point_spec] * n_out,
         interpret=interpret,
-    )(*pixel_arrays, slots.reshape(-1), *light_arrays)
-    return jnp.stack(out[:3], axis=-1)[:n_points], out[3][:n_points]
+    )(*point_arrays, slots.reshape(-1), *light_arrays)
+    radiance = jnp.stack(out[:3], axis=-1)[:n_points]
+    return (radiance, out[3][:n_points]) if count_reached else radiance
+
+
+def light_list_sums(points, terms: dict, lights: Lights, lists, rows, *, block_pixels: int = BLOCK_PIXELS,
+                    interpret: bool = False):
+    """Σ over each point's light list of brdf · E⊥ · max(n·l, 0), as one kernel over blocks of points
+    (:func:`list_sums`): the fast form of :func:`gpupro.shading.light_loop.accumulate_light_lists` (GGX,
+    no shadows).
+
+    ``points`` [P, 3]; ``terms`` the points' GGX :func:`gpupro.shading.brdfs.view_terms` ([P, 3] and
+    [P]); ``lights``, ``lists`` [R, C], ``rows`` [P] as :func:`list_sums`. Returns ``(radiance [P, 3] in
+    W/(m² sr), reached [P] float32)``: ``reached`` counts the listed lights whose influence truly reaches
+    each point. Not differentiable by itself.
+    """
+    return list_sums(_pixel_arrays(points, terms, points.shape[0]), lights, _surface_term, lists, rows,
+                     block_pixels=block_pixels, count_reached=True, interpret=interpret)
+
+
+def block_light_lists(points, lights: Lights, *, block_pixels: int = BLOCK_PIXELS):
+    """Per block of ``block_pixels`` consecutive points, the lights whose influence may meet the block's
+    bounding box (:func:`gpupro.shading.light_bounds.box_meets_light`, conservative), for :func:`list_sums`.
+
+    ``points`` [P, 3] world positions, ordered so that a block's points lie close together; ``lights``
+    N ≥ 1 lights. Returns ``(lists int32 [M, N], rows int32 [P])``: M = ⌈P / block_pixels⌉ lists, each
+    its lights in index order then −1, and each point's block. No capacity: a list can hold every light.
+    """
+    n_points = points.shape[0]
+    padded = -(-n_points // block_pixels) * block_pixels
+    blocks = jnp.pad(points, ((0, padded - n_points), (0, 0)), mode="edge").reshape(-1, block_pixels, 3)
+    hit = box_meets_light(jnp.min(blocks, axis=1), jnp.max(blocks, axis=1), lights)  # [M, N]
+    slot = jnp.where(hit, jnp.cumsum(hit, axis=1) - 1, lights.count)  # hits first, in index order
+    block = jnp.arange(hit.shape[0])[:, None]
+    lists = jnp.full(hit.shape, -1, jnp.int32).at[block, slot].set(
+        jnp.broadcast_to(jnp.arange(lights.count, dtype=jnp.int32), hit.shape), mode="drop")
+    return lists, jnp.arange(n_points, dtype=jnp.int32) // block_pixels

@@ -898,11 +898,12 @@ def bin_particles(centres, radii, visible, camera, *, bin_tile, tile_particle_ca
     return fill_light_lists(overlap, min(tile_particle_capacity, centres.shape[0]))
 
 
-_TILE_DIVISORS = (1, 4)
-"""The binned render loop's steps run on all T tiles or on the ⌈T/4⌉ with the longest lists, the smaller
-that holds every tile with list entries left: one compiled step per width. (On the clouds config at
-960×540, 16² tiles and 16 entries a step, the pairs tested are 7.8 times the tile–particle pairs · 16²
-with all tiles every step, 3.4 times with these two widths, 2.9 times with halvings down to T/8.)"""
+_TILE_DIVISORS = (1, 2, 4, 8, 16, 32, 64)
+"""The binned render loop's steps run on all T tiles or on the ⌈T/d⌉ with the longest lists, the smallest
+of these prefixes that holds every tile with list entries left: one compiled step per width. Measured on
+an H200 at 1920×1080 (docs/benchmarks.md), the chapter's highest profile with its particle count, alpha
+blending: 48.8 ms with d ∈ {1, 4}, 31.8 with {1, 4, 16}, 26.6 with {1, 4, 16, 64}, 17.0 with these
+halvings (14.4 s to compile against 6.0): the few tiles near the horizon hold the longest lists."""
 
 
 def render_particles_tiled(params, luts, arrays, ray, sun, lists, *, shape, bin_tile, tile_chunk, blending,

@@ -40,10 +40,12 @@ constant ambient radiance (an isotropic radiance convolved with a normalised pha
 cos θ = l_i · ω: light from a light straight ahead of the camera keeps going towards the eye (forward
 scattering, θ = 0).
 The sum over lights runs as the shared scan over chunks of lights (``light_loop = "scan"``, any
-shadows), or as one Pallas kernel over blocks of froxels that keeps each block's sums in registers
-(``"kernel"``: :func:`fused_scattered_light`, through :func:`gpupro.shading.light_kernel.light_sums`
-and the component form of the same incident light; no shadows); ``"auto"`` takes the kernel on GPUs
-when no light is shadowed. The two agree to float rounding (tests/test_volumetric_fog.py).
+shadows), or as one Pallas kernel over blocks of 2 × 16 × 8 froxels (rows, columns, slices) that keeps each block's sums in
+registers and walks only the lights whose influence meets the block's bounding box, the chapter's
+per-froxel-tile light culling (``"kernel"``: :func:`fused_scattered_light`, through
+:func:`gpupro.shading.light_kernel.list_sums` and the component form of the same incident light; no
+shadows); ``"auto"`` takes the kernel on GPUs when no light is shadowed. The two agree to float
+rounding (tests/test_volumetric_fog.py).
 
 Accumulation (sec. 3.3.5, Listing 3.2), front to back along each column, with Δt_k = (z_{k+1} − z_k) / (ω·f)
 the slice's length along the ray (f the viewing axis), τ_k = σ_t,k Δt_k and T_k = exp(−Σ_{j<k} τ_j):
@@ -89,7 +91,7 @@ from gpupro.media import henyey_greenstein, pixel_rays, trilinear
 from gpupro.numerics import dot3, matmul
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_falloff import incident_light
-from gpupro.shading.light_kernel import incident_components, light_sums
+from gpupro.shading.light_kernel import block_light_lists, incident_components, list_sums
 from gpupro.shading.light_loop import LIGHT_LOOPS, resolve_light_loop, sum_over_lights
 from gpupro.technique import (BOOLEAN, Buffer, Counter, Option, OptionError, Param, Technique, integer, number, one_of,
                               optional, register)
@@ -105,6 +107,12 @@ _EXPONENT_MAX = 60.0  # cap on −D (y − h_0): e^60 is finite in float32, and 
 SLICE_BATCH_GPU = 32
 """Slices lit together on GPUs by default (``slice_batch``): one slice of 160 × 90 froxels is too small a
 step for a GPU (docs/benchmarks.md)."""
+
+FROXEL_BLOCK = (2, 16, 8)
+"""Froxels (rows, columns, slices) in one block of the light-loop kernel (a power of two in all): a compact
+block's bounding box meets few lights, where a run of 256 froxels along a row would span the screen.
+Measured on an H200, the default grid, 64 lights (docs/benchmarks.md): 2 × 16 × 8 1.03 ms, 8 × 16 × 2
+1.14, 4 × 8 × 8 1.29, 8 × 8 × 4 1.30, 4 × 4 × 16 1.43, 16 × 16 × 1 1.45 (the pass, median)."""
 
 _SMALL_OPTICAL_DEPTH = 1e-4  # below it, (1 − e^{−τ}) / τ is its series 1 − τ / 2
 
@@ -195,12 +203,17 @@ def _scattered_term(column: list, light: dict):
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
 def fused_scattered_light(points, directions, g, lights: Lights, interpret: bool = False):
-    """Σ_i p_HG(l_i·ω; g) E_i over all N ≥ 1 lights [P, 3] as one kernel over blocks of points
-    (:func:`gpupro.shading.light_kernel.light_sums`; no shadows), equal to the scan. ``points``,
-    ``directions`` [P, 3]; ``g`` scalar. Differentiable (reverse mode, through the scan, recomputed)."""
+    """Σ_i p_HG(l_i·ω; g) E_i over all N ≥ 1 lights [P, 3] as one kernel over blocks of points, each
+    block walking only the lights that may meet its bounding box (:func:`gpupro.shading.light_kernel.
+    block_light_lists`, :func:`~gpupro.shading.light_kernel.list_sums`; no shadows), equal to the scan.
+    ``points``, ``directions`` [P, 3], ordered so that each run of one :data:`FROXEL_BLOCK`'s size is
+    compact (:func:`froxel_blocks`; any order is correct, a compact one culls more); ``g`` scalar. Differentiable (reverse mode, through the scan,
+    recomputed)."""
     columns = [points[:, 0], points[:, 1], points[:, 2], directions[:, 0], directions[:, 1], directions[:, 2],
                jnp.broadcast_to(jnp.asarray(g, jnp.float32), points.shape[:1])]
-    return light_sums(columns, lights, _scattered_term, interpret=interpret)
+    block = math.prod(FROXEL_BLOCK)
+    lists, rows = block_light_lists(points, lights, block_pixels=block)
+    return list_sums(columns, lights, _scattered_term, lists, rows, block_pixels=block, interpret=interpret)
 
 
 def _fused_forward(points, directions, g, lights, interpret):
@@ -231,7 +244,7 @@ def in_scattering(params, lights: Lights, points, directions, sigma_t, visibilit
     kernel on GPUs where no shadows apply).
     """
     if _fog_light_loop(light_loop, shadowed=visibility is not None) == "kernel" and lights.count > 0:
-        total = fused_scattered_light(points, directions, params["g"], lights)
+        total = fused_scattered_light(points, directions, params["g"], lights, jax.default_backend() != "gpu")
     else:
         total = _scattered_scan(points, directions, params["g"], lights, visibility, light_chunk)
     return params["albedo"] * sigma_t[:, None] * (params["ambient"] + total)
@@ -312,29 +325,57 @@ def froxel_rays(camera, *, froxels_x: int, froxels_y: int):
     return pixel_rays(dataclasses.replace(camera, resolution=(froxels_y, froxels_x)))
 
 
+def froxel_blocks(values, *, block=FROXEL_BLOCK):
+    """Per-froxel ``values`` [Y, X, N, C] as [P, C] in the order of ``block``-shaped blocks (rows, columns,
+    slices; the grid padded to whole blocks by repeating its last froxels, which leaves each block's box as
+    it is). :func:`from_froxel_blocks` inverts it."""
+    pads = [(0, -n % b) for n, b in zip(values.shape[:3], block)] + [(0, 0)]
+    padded = jnp.pad(values, pads, mode="edge")
+    (y, x, n), (by, bx, bs) = padded.shape[:3], block
+    return padded.reshape(y // by, by, x // bx, bx, n // bs, bs, -1).transpose(0, 2, 4, 1, 3, 5, 6).reshape(-1, values.shape[3])
+
+
+def from_froxel_blocks(flat, shape, *, block=FROXEL_BLOCK):
+    """[P, C] values in :func:`froxel_blocks` order → [Y, X, N, C] for a grid of ``shape`` (Y, X, N)."""
+    (by, bx, bs) = block
+    y, x, n = (-(-s // b) * b for s, b in zip(shape, block))
+    grid = flat.reshape(y // by, x // bx, n // bs, by, bx, bs, -1).transpose(0, 3, 1, 4, 2, 5, 6).reshape(y, x, n, -1)
+    return grid[:shape[0], :shape[1], :shape[2]]
+
+
+def froxel_points(camera, jitter, extent, *, froxels_x: int, froxels_y: int, slices: int, depth_exponent: float):
+    """Froxel sample points [Y, X, N, 3] (world) at depth Z((k + ``jitter``) / N) of each slice k of a
+    volume of range ``extent`` R, and their columns' unit ray directions [Y, X, 3]."""
+    origins, directions, depth_to_t = froxel_rays(camera, froxels_x=froxels_x, froxels_y=froxels_y)
+    depths = slice_depth((jnp.arange(slices, dtype=jnp.float32) + jitter) / slices, extent, depth_exponent=depth_exponent)
+    return origins[:, :, None, :] + directions[:, :, None, :] * (depths * depth_to_t[..., None])[..., None], directions
+
+
 def froxel_medium(params, scene, jitter, extent, maps=None, *, froxels_x: int, froxels_y: int, slices: int,
                   depth_exponent: float, shadow_pcf: int, noise_seed: int, light_chunk: int | None,
                   slice_batch: int | None, light_loop: str):
     """Per-froxel (s [Y, X, N, 3], σ_t [Y, X, N]) sampled at depth Z((k + ``jitter``) / N) of each slice k.
 
     ``jitter`` ξ scalar in [0, 1); ``extent`` R, the fog range (world units); ``maps``: None or the
-    :class:`gpupro.techniques.shadows.shadow_maps.ShadowMaps` of the first lights. One slice of Y·X points
-    is evaluated ``slice_batch`` slices at a time (``lax.map``; None: every slice at once with the light-loop
-    kernel, which keeps no [points, lights] intermediates, else :func:`default_slice_batch`); static grid and
-    medium options as the technique's.
+    :class:`gpupro.techniques.shadows.shadow_maps.ShadowMaps` of the first lights. With the light-loop
+    kernel and no ``slice_batch``, every froxel at once, in :data:`FROXEL_BLOCK` blocks so that each block
+    of the kernel walks only the lights near it; otherwise one slice of Y·X points ``slice_batch`` slices
+    at a time (``lax.map``; None: :func:`default_slice_batch`). Static grid and medium options as the
+    technique's.
     """
-    origins, directions, depth_to_t = froxel_rays(scene.camera, froxels_x=froxels_x, froxels_y=froxels_y)
-    depths = slice_depth((jnp.arange(slices, dtype=jnp.float32) + jitter) / slices, extent, depth_exponent=depth_exponent)
+    points, directions = froxel_points(scene.camera, jitter, extent, froxels_x=froxels_x, froxels_y=froxels_y,
+                                       slices=slices, depth_exponent=depth_exponent)
+    medium = functools.partial(_medium_at, params, scene, maps, shadow_pcf=shadow_pcf, noise_seed=noise_seed,
+                               light_chunk=light_chunk, light_loop=light_loop)
+    if _fog_light_loop(light_loop, shadowed=maps is not None) == "kernel" and slice_batch is None:
+        rays = jnp.broadcast_to(directions[:, :, None, :], points.shape)
+        sigma_t, scattering = medium(froxel_blocks(points), froxel_blocks(rays))
+        volume = from_froxel_blocks(jnp.concatenate([scattering, sigma_t[:, None]], axis=-1), points.shape[:3])
+        return volume[..., :3], volume[..., 3]
+
     rays = directions.reshape(-1, 3)
-
-    def one_slice(depth):
-        points = (origins + directions * (depth * depth_to_t)[..., None]).reshape(-1, 3)
-        return _medium_at(params, scene, maps, points, rays, shadow_pcf=shadow_pcf, noise_seed=noise_seed,
-                          light_chunk=light_chunk, light_loop=light_loop)
-
-    kernel = _fog_light_loop(light_loop, shadowed=maps is not None) == "kernel"
-    batch = min(slice_batch or (slices if kernel else default_slice_batch()), slices)
-    sigma_t, scattering = jax.lax.map(one_slice, depths, batch_size=batch)  # [N, Y·X], [N, Y·X, 3]
+    sigma_t, scattering = jax.lax.map(lambda slice_points: medium(slice_points.reshape(-1, 3), rays),
+                                      jnp.moveaxis(points, 2, 0), batch_size=min(slice_batch or default_slice_batch(), slices))
     return (jnp.moveaxis(scattering, 0, 1).reshape(froxels_y, froxels_x, slices, 3),
             jnp.moveaxis(sigma_t, 0, 1).reshape(froxels_y, froxels_x, slices))
 
@@ -404,11 +445,10 @@ def apply(params, inputs, scene, state, *, froxels_x, froxels_y, slices, depth_e
                                         noise_seed=noise_seed, light_chunk=light_chunk, slice_batch=slice_batch,
                                         light_loop=light_loop)
 
-    origins, directions, depth_to_t = froxel_rays(camera, froxels_x=froxels_x, froxels_y=froxels_y)
+    _, _, depth_to_t = froxel_rays(camera, froxels_x=froxels_x, froxels_y=froxels_y)
     boundaries = slice_depth(jnp.arange(slices + 1, dtype=jnp.float32) / slices, extent, depth_exponent=depth_exponent)
     if temporal and state is not None:  # without a state, a first frame: no history
-        centres = slice_depth((jnp.arange(slices, dtype=jnp.float32) + 0.5) / slices, extent, depth_exponent=depth_exponent)
-        points = origins[:, :, None, :] + directions[:, :, None, :] * (centres * depth_to_t[..., None])[..., None]
+        points, _ = froxel_points(camera, 0.5, extent, **grid)  # the froxels' centres
         history = jnp.concatenate([state["in_scattering"], state["extinction"][..., None]], axis=-1)
         previous, inside = reproject(history, points, state, depth_exponent=depth_exponent)
         reused = inside & state["valid"]
@@ -492,7 +532,8 @@ MEDIUM_OPTIONS = (
     Option("noise_seed", 0, integer(0), "seed of the noise's permutation table"),
     Option("light_chunk", None, optional(integer(1)), "lights per scan step (peak [points, chunk, 3]); none: 32 on GPUs, 64 on CPUs"),
     Option("light_loop", "auto", one_of(*LIGHT_LOOPS),
-           "scan (XLA, chunks of lights), kernel (one Pallas kernel over blocks of points, no shadows) or auto "
+           "scan (XLA, chunks of lights), kernel (one Pallas kernel over blocks of points, each walking the lights "
+           "that meet its box; no shadows) or auto "
            "(the kernel on GPUs when no light is shadowed)"),
 )
 PARAMS = (
