@@ -106,8 +106,8 @@ the rectangle overlaps, count → scan → fill, in the sorted (back-to-front) o
 points grow the capacity to ``tile_particle_capacity_needed`` and render again. Step j of the loop takes
 entries j K … (j + 1) K − 1 (K = ``tile_chunk``) of every tile's list and tests them against that
 tile's pixels only (:func:`render_particles_tiled`); tiles are ordered by decreasing list length and a
-step runs on all T tiles, or on the first ⌈T/4⌉ where they hold every tile with entries left (its share
-of ``hit_capacity`` is its share of the tiles); the loop ends with the longest list. With ``binning =
+step runs on the first ⌈T/d⌉ tiles, d the largest of 1, 2, 4, …, 64 for which they hold every tile with
+entries left (its share of ``hit_capacity`` is its share of the tiles); the loop ends with the longest list. With ``binning =
 "none"`` (the reference, :func:`render_particles`) every pixel meets every visible particle, in chunks
 of ``particle_chunk`` sorted particles, chunks past the visible ones skipped. Either way
 the ray–sphere tests of a step's pixel–particle pairs are dense, the intersecting pairs are compacted
@@ -903,7 +903,8 @@ _TILE_DIVISORS = (1, 2, 4, 8, 16, 32, 64)
 of these prefixes that holds every tile with list entries left: one compiled step per width. Measured on
 an H200 at 1920×1080 (docs/benchmarks.md), the chapter's highest profile with its particle count, alpha
 blending: 48.8 ms with d ∈ {1, 4}, 31.8 with {1, 4, 16}, 26.6 with {1, 4, 16, 64}, 17.0 with these
-halvings (14.4 s to compile against 6.0): the few tiles near the horizon hold the longest lists."""
+halvings (14.4 s to compile against 6.0), 15.5 with halvings to 256; 13.9 with these halvings and 32
+entries a step (``tile_chunk``): the few tiles near the horizon hold the longest lists."""
 
 
 def render_particles_tiled(params, luts, arrays, ray, sun, lists, *, shape, bin_tile, tile_chunk, blending,
@@ -1130,8 +1131,9 @@ OPTIONS = (
                                        "rendering resolution)"),
     Option("tile_particle_capacity", 256, integer(1), "particles listed per screen tile (lossy capacity: grown on "
                                                       "overflow)"),
-    Option("tile_chunk", 16, integer(1), "entries of every tile's list met per step of the render loop with "
-                                         "binning"),
+    Option("tile_chunk", 32, integer(1), "entries of every tile's list met per step of the render loop with "
+                                         "binning (32: 13.9 ms against 17.0 for 16 at the chapter's highest profile "
+                                         "on an H200)"),
     Option("particle_chunk", 64, integer(1), "particles per step of the render loop without binning"),
     Option("hit_capacity", 1 << 18, integer(1), "pixel–particle intersections shaded per step over the whole "
                                               "image; a step over part of the tiles gets its share (lossy "
