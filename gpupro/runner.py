@@ -110,7 +110,8 @@ def _write(buffers: dict, pipeline, config: dict, camera, out_dir: pathlib.Path,
 
 
 def _check_frame(buffers: dict, index: int):
-    """Refuses to write a wrong picture: non-finite values, or triangles skipped for NaN positions."""
+    """Refuses to write a wrong picture: non-finite values, or triangles skipped for NaN positions or
+    vertex indices outside the mesh."""
     for name, value in buffers.items():
         if name == COUNTERS:
             continue
@@ -121,6 +122,9 @@ def _check_frame(buffers: dict, index: int):
         skipped = int(np.max(np.asarray(counters.get("nonfinite_triangles", 0))))
         if skipped:
             raise ValueError(f"frame {index}: pass {pass_name!r} met {skipped} triangles with NaN or infinite positions")
+        invalid = int(np.max(np.asarray(counters.get("invalid_faces", 0))))
+        if invalid:
+            raise ValueError(f"frame {index}: pass {pass_name!r} skipped {invalid} faces with vertex indices outside the mesh")
 
 
 def _warnings(scene, buffers: dict, say):

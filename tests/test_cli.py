@@ -204,6 +204,8 @@ def test_frames_with_nan_or_skipped_triangles_are_not_written():
         _check_frame({**good, "hdr": jnp.full((2, 2, 3), jnp.nan)}, 3)
     with pytest.raises(ValueError, match="2 triangles with NaN"):
         _check_frame({**good, "counters": {"raster": {"nonfinite_triangles": jnp.int32(2)}}}, 0)
+    with pytest.raises(ValueError, match="skipped 3 faces with vertex indices outside the mesh"):
+        _check_frame({**good, "counters": {"raster": {"nonfinite_triangles": jnp.int32(0), "invalid_faces": jnp.int32(3)}}}, 0)
 
 
 def test_generated_docs_are_current(tmp_path):

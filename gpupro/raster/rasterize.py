@@ -8,6 +8,7 @@ perspective-correct barycentrics (see :mod:`gpupro.raster.setup` for the equatio
 from __future__ import annotations
 
 import functools
+import numbers
 import typing
 
 import jax
@@ -37,23 +38,70 @@ class Fragments(typing.NamedTuple):
     counters: dict
 
 
-def _check_inputs(clip, faces, resolution) -> tuple[int, int]:
-    if len(resolution) != 2 or int(resolution[0]) <= 0 or int(resolution[1]) <= 0:
-        raise ValueError(f"rasterize: resolution must be (height, width) > 0, got {resolution}")
+def _is_int(value) -> bool:
+    """A Python or numpy integer; bools and floats (even 8.0) are refused, so nothing is truncated."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+
+def _check_resolution(resolution, where: str) -> tuple[int, int]:
+    """``(height, width)`` as Python ints, or ValueError naming ``resolution``."""
+    try:
+        entries = tuple(resolution)
+    except TypeError:  # a bare int, None ...
+        entries = None
+    if entries is None or len(entries) != 2 or not all(_is_int(n) and n > 0 for n in entries):
+        raise ValueError(f"{where}: resolution must be (height, width), two integers > 0, got {resolution!r}")
+    return int(entries[0]), int(entries[1])
+
+
+def _check_option(name: str, value, *, optional: bool = False) -> int | None:
+    """A static integer option >= 1 (or None where ``optional``), refused before JAX sees it."""
+    if optional and value is None:
+        return None
+    if not _is_int(value) or value < 1:
+        expected = "an integer >= 1" + (" or None" if optional else "")
+        raise ValueError(f"rasterize: {name} must be {expected}, got {value!r}")
+    return int(value)
+
+
+def _check_inputs(clip, faces, resolution, where: str):
+    """Checks shapes and dtypes; returns ``(clip float32 [V, 4], faces [F, 3] as given, (H, W))``.
+
+    ``faces`` keeps its dtype (numpy for concrete inputs) so that indices beyond int32 are judged by
+    :func:`_sanitize_faces` before any cast could wrap them onto other vertices.
+    """
+    resolution = _check_resolution(resolution, where)
+    clip = jnp.asarray(clip, jnp.float32)
+    # Not jnp.asarray: with 64-bit types off it would wrap int64 indices to int32 silently.
+    faces = faces if isinstance(faces, jax.core.Tracer) else np.asarray(faces)
     if clip.ndim != 2 or clip.shape[1] != 4:
-        raise ValueError(f"rasterize: clip must have shape [V, 4], got {list(clip.shape)}")
+        raise ValueError(f"{where}: clip must have shape [V, 4], got {list(clip.shape)}")
     if faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"rasterize: faces must have shape [F, 3], got {list(faces.shape)}")
+        raise ValueError(f"{where}: faces must have shape [F, 3], got {list(faces.shape)}")
     if not jnp.issubdtype(faces.dtype, jnp.integer):
-        raise ValueError(f"rasterize: faces must be integers, got {faces.dtype}")
+        raise ValueError(f"{where}: faces must be integers, got {faces.dtype}")
     if not isinstance(clip, jax.core.Tracer):
         if not np.isfinite(np.asarray(clip)).all():
-            raise ValueError("rasterize: clip positions contain NaN or infinite values")
-    if not isinstance(faces, jax.core.Tracer) and faces.shape[0]:
-        f = np.asarray(faces)
-        if f.min() < 0 or f.max() >= clip.shape[0]:
-            raise ValueError(f"rasterize: face indices must lie in [0, {clip.shape[0] - 1}], found [{f.min()}, {f.max()}]")
-    return int(resolution[0]), int(resolution[1])
+            raise ValueError(f"{where}: clip positions contain NaN or infinite values")
+    return clip, faces, resolution
+
+
+def _sanitize_faces(faces, num_vertices: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Replaces faces with an index outside [0, V) by [0, 0, 0], which setup culls (indices not distinct).
+
+    ``faces`` [F, 3] of any integer dtype, numpy (concrete) or traced; ``num_vertices`` V is the
+    caller's count, before :func:`_pad` appends zero vertices that an index == V would otherwise hit.
+    The test runs in the caller's dtype, before the cast to int32. Returns ``(faces int32 [F, 3],
+    valid bool [F], invalid int32 scalar)``, the same with concrete and traced inputs.
+    """
+    xp = jnp if isinstance(faces, jax.core.Tracer) else np
+    in_range = faces >= 0
+    # V beyond the dtype's range (int8 faces, 300 vertices) bounds nothing, and JAX would refuse the cast.
+    if num_vertices <= np.iinfo(faces.dtype).max:
+        in_range &= faces < num_vertices
+    valid = xp.all(in_range, axis=1)
+    safe = xp.where(valid[:, None], faces, 0).astype(np.int32)  # every entry now lies in [0, V)
+    return jnp.asarray(safe), jnp.asarray(valid), jnp.asarray(xp.sum(~valid), jnp.int32)
 
 
 def _bucket(n: int) -> int:
@@ -61,12 +109,15 @@ def _bucket(n: int) -> int:
     return max(64, 1 << max(0, n - 1).bit_length())
 
 
-def _pad(clip: jax.Array, faces: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Pads vertices with zeros and faces with degenerate triangles (culled: zero determinant)."""
+def _pad(clip: jax.Array, faces: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Pads vertices with zeros and faces with [0, 0, 0] (culled: indices not distinct, zero determinant).
+
+    ``valid`` bool [F] is padded with False, so padding faces are never counted as the caller's.
+    """
     v, f = clip.shape[0], faces.shape[0]
     clip = jnp.pad(clip, ((0, _bucket(v) - v), (0, 0)))
     faces = jnp.pad(faces, ((0, _bucket(f) - f), (0, 0)))
-    return clip, faces
+    return clip, faces, jnp.pad(valid, (0, _bucket(f) - f))
 
 
 def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -> Fragments:
@@ -77,12 +128,13 @@ def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -
 
 
 @functools.partial(jax.jit, static_argnames=("resolution", "cull_backfaces", "tile", "tile_capacity", "pair_capacity", "chunk_batch"))
-def _rasterize_padded(clip, faces, *, resolution, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch) -> Fragments:
+def _rasterize_padded(clip, faces, valid, *, resolution, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
     triangle_id, depth, counters = rasterize_tiled(
         setup, resolution=resolution, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity, chunk_batch=chunk_batch
     )
-    counters["nonfinite_triangles"] = jnp.sum(~setup.finite).astype(jnp.int32)
+    # Only the caller's valid faces: padding and replaced faces all read vertex 0, which may be NaN.
+    counters["nonfinite_triangles"] = jnp.sum(~setup.finite & valid).astype(jnp.int32)
     return _fragments(setup, triangle_id, depth, counters, resolution)
 
 
@@ -108,35 +160,40 @@ def rasterize(
 
     Args:
       clip: float32 [V, 4] clip-space vertex positions (OpenGL conventions).
-      faces: int32 [F, 3] vertex indices; counter-clockwise in NDC is front-facing.
-      resolution: ``(height, width)`` in pixels (static).
+      faces: integer [F, 3] vertex indices (cast to int32 once checked); counter-clockwise in NDC is
+        front-facing.
+      resolution: ``(height, width)`` in pixels, two integers > 0 (static).
       cull_backfaces: drop clockwise (back-facing) triangles (static).
-      tile: tile edge in pixels (static).
-      tile_capacity: triangles resolved per tile chunk; tiles with more take several chunks (static).
-      pair_capacity: (triangle, tile) candidate pairs per binning pass; more take several passes
-        (static; default from F and the tile count).
-      chunk_batch: tile chunks resolved per step (static; default: the number of tiles).
+      tile: tile edge in pixels, an integer >= 1 (static).
+      tile_capacity: triangles resolved per tile chunk, >= 1; tiles with more take several chunks (static).
+      pair_capacity: (triangle, tile) candidate pairs per binning pass, >= 1 or None; more take
+        several passes (static; None: from F and the tile count).
+      chunk_batch: tile chunks resolved per step, >= 1 or None (static; None: the number of tiles).
 
     Returns:
       :class:`Fragments`. Nothing is dropped when a capacity is exceeded: the excess is processed
       in further passes, and ``counters`` reports it (``pair_overflow``, ``tile_overflow_pairs``,
-      ``tiles_overflowed``, ``binning_passes``, ``tile_chunks``). Works under ``jax.jit``; with
-      concrete inputs, NaN/inf positions and out-of-range faces raise ``ValueError``; under
-      ``jit`` such triangles are not drawn and ``counters["nonfinite_triangles"]`` counts them.
+      ``tiles_overflowed``, ``binning_passes``, ``tile_chunks``). Works under ``jax.jit``. Faces
+      with an index outside [0, V) are never drawn and ``counters["invalid_faces"]`` counts them,
+      with concrete inputs and under ``jit`` alike. NaN/inf positions raise ``ValueError`` with
+      concrete inputs; under ``jit`` such triangles are not drawn and
+      ``counters["nonfinite_triangles"]`` counts them. Malformed shapes, dtypes and static options
+      raise ``ValueError`` naming the argument.
       Vertex and face counts are padded to powers of two so that changing counts reuse compiled code.
     """
-    clip = jnp.asarray(clip, jnp.float32)
-    faces = jnp.asarray(faces)
-    resolution = _check_inputs(clip, faces, resolution)
-    faces = faces.astype(jnp.int32)
-    if tile <= 0 or tile_capacity <= 0:
-        raise ValueError(f"rasterize: tile and tile_capacity must be positive, got {tile}, {tile_capacity}")
+    clip, faces, resolution = _check_inputs(clip, faces, resolution, "rasterize")
+    tile = _check_option("tile", tile)
+    tile_capacity = _check_option("tile_capacity", tile_capacity)
+    pair_capacity = _check_option("pair_capacity", pair_capacity, optional=True)
+    chunk_batch = _check_option("chunk_batch", chunk_batch, optional=True)
     num_faces = faces.shape[0]
+    faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
     num_tiles = -(-resolution[0] // tile) * -(-resolution[1] // tile)
-    clip, faces = _pad(clip, faces)
+    clip, faces, valid = _pad(clip, faces, valid)
     frags = _rasterize_padded(
         clip,
         faces,
+        valid,
         resolution=resolution,
         cull_backfaces=cull_backfaces,
         tile=tile,
@@ -144,7 +201,7 @@ def rasterize(
         pair_capacity=pair_capacity or default_pair_capacity(faces.shape[0], num_tiles),
         chunk_batch=chunk_batch or num_tiles,
     )
-    return frags._replace(counters=dict(frags.counters, triangles=jnp.int32(num_faces)))
+    return frags._replace(counters=dict(frags.counters, triangles=jnp.int32(num_faces), invalid_faces=invalid))
 
 
 def reference(
@@ -156,13 +213,14 @@ def reference(
 ) -> Fragments:
     """Brute-force rasterization with the same inputs and outputs as :func:`rasterize`.
 
-    ``clip`` float32 [V, 4], ``faces`` int32 [F, 3], ``resolution`` (height, width); returns
+    ``clip`` float32 [V, 4], ``faces`` integer [F, 3], ``resolution`` (height, width); returns
     :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics).
-    Every triangle is tested at every pixel; ``counters`` has only ``pixel_triangle_tests``.
+    Every triangle is tested at every pixel; ``counters`` has ``pixel_triangle_tests`` (F H W) and
+    ``invalid_faces`` (faces with an index outside [0, V), never drawn, as in :func:`rasterize`).
     """
-    clip = jnp.asarray(clip, jnp.float32)
-    faces = jnp.asarray(faces)
-    resolution = _check_inputs(clip, faces, resolution)
+    clip, faces, resolution = _check_inputs(clip, faces, resolution, "reference")
     tests = jnp.int32(faces.shape[0] * resolution[0] * resolution[1])
-    frags = _reference_padded(*_pad(clip, faces.astype(jnp.int32)), resolution=resolution, cull_backfaces=cull_backfaces)
-    return frags._replace(counters={"pixel_triangle_tests": tests})
+    faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
+    clip, faces, _ = _pad(clip, faces, valid)
+    frags = _reference_padded(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
+    return frags._replace(counters={"pixel_triangle_tests": tests, "invalid_faces": invalid})

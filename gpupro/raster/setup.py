@@ -25,6 +25,27 @@ rule (``a > 0`` or ``a = 0, b > 0`` with ``y`` pointing down the image).
 Facing: ``det M`` has the sign of the triangle's winding in the image (its homogeneous signed
 area); because ``Y'`` flips y, counter-clockwise triangles in NDC (front faces, as OpenGL's default)
 have ``det M < 0``.
+
+Hardware-exact coverage (D3D11 functional spec sec. 3.4 and 15.2; what Mesa and NVIDIA do): a triangle
+whose three vertices are in front of the eye (W > 0) and inside the guard band |x|, |y| < 2^14 pixels
+is snapped. Its window positions, computed as OpenGL's viewport transform does (x_w = (X/W)·w/2 +
+w/2, y_gl = (Y/W)·h/2 + h/2), are rounded to the nearest 1/256 pixel (8 sub-pixel bits), X = rnd(256
+x_w), Y = 256 h − rnd(256 y_gl) (rows down), and coverage comes from integer edge functions
+
+    E_i(P) = (X_{i+2} − X_{i+1})(P_y − Y_{i+1}) − (Y_{i+2} − Y_{i+1})(P_x − X_{i+1}),
+    P = (256 x + 128, 256 y + 128) for pixel (x, y),
+
+evaluated exactly. Factors stay below 2^23 in magnitude, so a product needs 46 bits: each factor is
+split as f = 2^12 f_h + f_l (0 ≤ f_l < 2^12), the three partial sums of a·x + b·y (weights 2^24, 2^12,
+1) are int32 without overflow, and carrying the low ones upwards gives the exact sign
+(:func:`exact_sign`; JAX has no int64 without x64 mode). The signed area (E_0 at vertex 0) decides
+orientation and culling (0: the snapped triangle is degenerate, not drawn), and the top-left rule applies
+to the snapped edges. A shared edge of two snapped triangles has E and −E exactly, so watertightness
+holds for any vertex positions. Depth stays float: the window depth z_w = ½ Z/W + ½ is affine in the
+image, interpolated from the snapped vertices, z_w(p) = z_0 + ∂z/∂x (p_x − x_0) + ∂z/∂y (p_y − y_0),
+so it is exactly z_0 where the three vertices share a depth. Other triangles (a vertex behind the eye
+or past the guard band, where hardware clips) keep the homogeneous float test above; so does every
+triangle's perspective-correct interpolation.
 """
 
 from __future__ import annotations
@@ -46,6 +67,11 @@ class TriangleSetup(typing.NamedTuple):
     ``visible`` bool [F]: not culled (not degenerate, not back-facing when culling, not wholly
     outside one clip plane); ``finite`` bool [F]: all vertex coordinates finite; ``bbox`` float32 [F, 4]: conservative pixel bounding box
     (xmin, ymin, xmax, ymax) of the part of the triangle inside the near and far planes.
+    ``snapped`` bool [F]: coverage from the exact integer edges (module docstring); ``fixed`` int32
+    [F, 3, 2]: the snapped vertices (X, Y) in 1/256 pixel; ``fixed_edges`` int32 [F, 3, 2]: edge i's
+    (b, a) = (X_{i+2} − X_{i+1}, −(Y_{i+2} − Y_{i+1})) times the orientation, so inside is E ≥ 0;
+    ``plane`` float32 [F, 3]: window depth z_0, ∂z/∂x, ∂z/∂y of a snapped triangle (per pixel, from
+    vertex 0).
     """
 
     edges: jax.Array
@@ -55,6 +81,18 @@ class TriangleSetup(typing.NamedTuple):
     visible: jax.Array
     finite: jax.Array
     bbox: jax.Array
+    snapped: jax.Array
+    fixed: jax.Array
+    fixed_edges: jax.Array
+    plane: jax.Array
+
+
+SUBPIXEL_BITS = 8
+"""Sub-pixel precision of snapped vertices: 1/256 pixel, as D3D11 requires."""
+GUARD_BAND = 1 << 14
+"""Window coordinates (pixels, either sign) within which triangles are snapped; past it, hardware clips."""
+_LIMB = 12  # split of the exact products: factors below 2^23 → partial products below 2^24
+_SNAP_RESOLUTION = 1 << 13  # images up to 8192 pixels a side are snapped
 
 
 def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int, int], cull_backfaces: bool) -> TriangleSetup:
@@ -88,11 +126,71 @@ def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int,
     finite = jnp.all(jnp.isfinite(c), axis=(1, 2))
     # Repeated vertex indices mean zero area; rounding (fused products) could make det tiny, not 0.
     distinct = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-    visible = (det != 0) & distinct & ~outside_one_plane & finite
+    snapped, fixed, fixed_edges, fixed_owns, area_sign, plane = _snap(c, width, height)
+    area_sign = jnp.where(snapped, area_sign, jnp.sign(det).astype(jnp.int32))
+    owns_edge = jnp.where(snapped[:, None], fixed_owns, owns_edge)
+    visible = (area_sign != 0) & distinct & ~outside_one_plane & finite
     if cull_backfaces:
-        visible &= det < 0
+        visible &= area_sign < 0
     edges = jnp.stack([a, b, residual], axis=-1)
-    return TriangleSetup(edges, origin, owns_edge, depth_coef, visible, finite, _clipped_bbox(c, width, height))
+    return TriangleSetup(edges, origin, owns_edge, depth_coef, visible, finite, _clipped_bbox(c, width, height),
+                         snapped, fixed, fixed_edges, plane)
+
+
+def _split(f):
+    """f = 2^12 f_h + f_l with 0 ≤ f_l < 2^12 (int32, |f| < 2^23)."""
+    return f >> _LIMB, f & ((1 << _LIMB) - 1)
+
+
+def exact_sign(a, x, b, y):
+    """Exact sign of a·x + b·y: int32 [...] in {−1, 0, 1} for int32 arrays ``a``, ``x``, ``b``, ``y``
+    (broadcast to [...]) below 2^23 in magnitude.
+
+    The product needs up to 47 bits: with the 12-bit splits of :func:`_split`, the value is h 2^24 +
+    m 2^12 + l with int32 partial sums h, m, l; carrying l and then m upwards leaves 0 ≤ m, l < 2^12,
+    so the sign is h's unless h = 0."""
+    (ah, al), (xh, xl), (bh, bl), (yh, yl) = _split(a), _split(x), _split(b), _split(y)
+    high = ah * xh + bh * yh
+    mid = ah * xl + al * xh + bh * yl + bl * yh
+    low = al * xl + bl * yl
+    mid = mid + (low >> _LIMB)
+    high = high + (mid >> _LIMB)
+    rest = ((mid & ((1 << _LIMB) - 1)) | (low & ((1 << _LIMB) - 1))) != 0
+    return jnp.where(high != 0, jnp.sign(high), rest.astype(jnp.int32))
+
+
+def _snap(c: jax.Array, width: int, height: int):
+    """Snapped triangles (module docstring) of clip-space corners ``c`` [F, 3, 4]: ``(snapped [F],
+    fixed int32 [F, 3, 2], fixed_edges int32 [F, 3, 2], owns_edge bool [F, 3], area_sign int32 [F],
+    plane float32 [F, 3])``; the last five are meaningful where ``snapped``."""
+    x, y, z, w = c[..., 0], c[..., 1], c[..., 2], c[..., 3]
+    in_front = jnp.all(w > 0, axis=1)
+    inv_w = 1.0 / jnp.where(w > 0, w, 1.0)
+    x_w = (x * inv_w) * (0.5 * width) + 0.5 * width
+    y_gl = (y * inv_w) * (0.5 * height) + 0.5 * height
+    inside = jnp.all((jnp.abs(x_w) < GUARD_BAND) & (jnp.abs(y_gl) < GUARD_BAND), axis=1)
+    # Larger images would take the factors of the exact products past 2^23.
+    snapped = in_front & inside & jnp.all(jnp.isfinite(c), axis=(1, 2)) & (max(width, height) <= _SNAP_RESOLUTION)
+    scale = float(1 << SUBPIXEL_BITS)
+    to_fixed = lambda v: jnp.round(jnp.where(snapped[:, None], v, 0.0) * scale).astype(jnp.int32)
+    fixed = jnp.stack([to_fixed(x_w), (height << SUBPIXEL_BITS) - to_fixed(y_gl)], axis=-1)  # [F, 3, 2]
+    v1, v2 = jnp.roll(fixed, -1, axis=1), jnp.roll(fixed, -2, axis=1)
+    b, a = v2[..., 0] - v1[..., 0], v1[..., 1] - v2[..., 1]  # E = b (P_y − Y_1) + a (P_x − X_1)
+    offset = fixed[:, 0] - v1[:, 0]  # vertex 0 from edge 0's origin
+    area_sign = exact_sign(a[:, 0], offset[:, 0], b[:, 0], offset[:, 1])
+    orientation = jnp.where(area_sign < 0, -1, 1)[:, None]
+    a, b = a * orientation, b * orientation
+    owns = (a > 0) | ((a == 0) & (b > 0))  # top-left rule (y down): inward normal (a, b) right, or down
+    # Window depth as an affine function of the image from the snapped vertices (Cramer's rule).
+    z_w = 0.5 * (z * inv_w) + 0.5
+    position = fixed.astype(jnp.float32) / scale
+    dx1, dy1 = position[:, 1, 0] - position[:, 0, 0], position[:, 1, 1] - position[:, 0, 1]
+    dx2, dy2 = position[:, 2, 0] - position[:, 0, 0], position[:, 2, 1] - position[:, 0, 1]
+    dz1, dz2 = z_w[:, 1] - z_w[:, 0], z_w[:, 2] - z_w[:, 0]
+    area = dx1 * dy2 - dx2 * dy1
+    safe = jnp.where(area != 0, area, 1.0)
+    plane = jnp.stack([z_w[:, 0], (dz1 * dy2 - dz2 * dy1) / safe, (dx1 * dz2 - dx2 * dz1) / safe], axis=-1)
+    return snapped, fixed, jnp.stack([b, a], axis=-1), owns, area_sign, plane
 
 
 def _lexicographic_less(p: jax.Array, q: jax.Array) -> jax.Array:
@@ -178,11 +276,22 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array)
     """
     valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
     t = jnp.where(valid_index, tri, 0)
+    snapped = setup.snapped[t]
     values = edge_values(setup, t, px, py)
-    inside_edges = jnp.where(setup.owns_edge[t], values >= 0, values > 0)
+    # Exact integer edges of snapped triangles; pixel centres are exact in 1/256 pixel.
+    centre = lambda p: (jnp.asarray(p) * (1 << SUBPIXEL_BITS)).astype(jnp.int32)[..., None]
+    fixed, fixed_edges = setup.fixed[t], setup.fixed_edges[t]
+    origin = jnp.roll(fixed, -1, axis=-2)  # edge i starts at vertex i + 1
+    sign = exact_sign(fixed_edges[..., 1], centre(px) - origin[..., 0], fixed_edges[..., 0], centre(py) - origin[..., 1])
+    inside_edges = jnp.where(snapped[..., None], jnp.where(setup.owns_edge[t], sign >= 0, sign > 0),
+                             jnp.where(setup.owns_edge[t], values >= 0, values > 0))
     coef = setup.depth_coef[t]
-    # Written out so that every caller sums in the same order and gets bit-identical depths.
-    depth = 0.5 + (values[..., 0] * coef[..., 0] + values[..., 1] * coef[..., 1] + values[..., 2] * coef[..., 2])
+    homogeneous = 0.5 + (values[..., 0] * coef[..., 0] + values[..., 1] * coef[..., 1] + values[..., 2] * coef[..., 2])
+    plane = setup.plane[t]
+    x0, y0 = fixed[..., 0, 0].astype(jnp.float32) / (1 << SUBPIXEL_BITS), fixed[..., 0, 1].astype(jnp.float32) / (1 << SUBPIXEL_BITS)
+    # The offsets are exact; where the plane is flat both products are exactly 0, so the depth is z_0.
+    affine = plane[..., 0] + (plane[..., 1] * (px - x0) + plane[..., 2] * (py - y0))
+    depth = jnp.where(snapped, affine, homogeneous)
     covered = valid_index & setup.visible[t] & jnp.all(inside_edges, axis=-1) & (depth >= 0) & (depth <= 1)
     return covered, depth
 

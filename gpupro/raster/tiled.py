@@ -32,9 +32,11 @@ import math
 import jax
 import jax.numpy as jnp
 
-from gpupro.raster.setup import TriangleSetup, evaluate
+from gpupro.raster.setup import SUBPIXEL_BITS, TriangleSetup, evaluate
 
 NO_TRIANGLE = jnp.iinfo(jnp.int32).max
+SNAP_MARGIN = 1.0 / 64
+"""Pixels by which the tile test widens a tile: more than snapping moves a vertex (√2/512)."""
 
 
 def default_pair_capacity(num_faces: int, num_tiles: int) -> int:
@@ -59,8 +61,10 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     """Whether triangles ``tri`` [P] may cover a pixel centre of the tiles whose corner pixels are (x0, y0)."""
     e = setup.edges[tri]  # [P, 3, 3]
     o = setup.edge_origin[tri]  # [P, 3, 2]
-    lo_x, hi_x = (x0 + 0.5)[:, None], (x0 + tile - 0.5)[:, None]
-    lo_y, hi_y = (y0 + 0.5)[:, None], (y0 + tile - 0.5)[:, None]
+    # The tile's pixel centres widened by SNAP_MARGIN: a snapped triangle lies within √2/512 pixel of its
+    # float form (gpupro.raster.setup), so this test against the float edges stays conservative.
+    lo_x, hi_x = (x0 + 0.5 - SNAP_MARGIN)[:, None], (x0 + tile - 0.5 + SNAP_MARGIN)[:, None]
+    lo_y, hi_y = (y0 + 0.5 - SNAP_MARGIN)[:, None], (y0 + tile - 0.5 + SNAP_MARGIN)[:, None]
     a, b, c = e[..., 0], e[..., 1], e[..., 2]
     ax = jnp.stack([a * (lo_x - o[..., 0]), a * (hi_x - o[..., 0])])
     by = jnp.stack([b * (lo_y - o[..., 1]), b * (hi_y - o[..., 1])])
@@ -72,8 +76,18 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     d = setup.depth_coef[tri]
     depth_corners = 0.5 + jnp.stack([jnp.sum((ax[i] + by[j] + c) * d, axis=-1) for i in (0, 1) for j in (0, 1)])
     depth_slack = 1e-5 + 1e-5 * jnp.sum(magnitude * jnp.abs(d), axis=-1)
-    depth_ok = (jnp.max(depth_corners, axis=0) >= -depth_slack) & (jnp.min(depth_corners, axis=0) <= 1 + depth_slack)
-    return edges_ok & depth_ok
+    # Snapped triangles: the depth plane of the snapped vertices, which evaluate() uses (the homogeneous
+    # form is ill-conditioned for slivers that snapping widens).
+    plane, vertex = setup.plane[tri], setup.fixed[tri][:, 0].astype(jnp.float32) / (1 << SUBPIXEL_BITS)
+    px = jnp.stack([plane[:, 1] * (lo_x[:, 0] - vertex[:, 0]), plane[:, 1] * (hi_x[:, 0] - vertex[:, 0])])
+    py = jnp.stack([plane[:, 2] * (lo_y[:, 0] - vertex[:, 1]), plane[:, 2] * (hi_y[:, 0] - vertex[:, 1])])
+    affine_lo = plane[:, 0] + jnp.min(px, axis=0) + jnp.min(py, axis=0)
+    affine_hi = plane[:, 0] + jnp.max(px, axis=0) + jnp.max(py, axis=0)
+    affine_slack = 1e-5 * (jnp.abs(plane[:, 0]) + jnp.max(jnp.abs(px), axis=0) + jnp.max(jnp.abs(py), axis=0))
+    snapped = setup.snapped[tri]
+    lowest = jnp.where(snapped, affine_lo - affine_slack, jnp.min(depth_corners, axis=0) - depth_slack)
+    highest = jnp.where(snapped, affine_hi + affine_slack, jnp.max(depth_corners, axis=0) + depth_slack)
+    return edges_ok & (highest >= 0) & (lowest <= 1)
 
 
 @functools.partial(

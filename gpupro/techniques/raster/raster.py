@@ -76,6 +76,7 @@ register(Technique(
         Counter("tiles_overflowed", "tiles with more triangles than tile_capacity"),
         Counter("pair_overflow", "candidate pairs past pair_capacity in the first binning pass"),
         Counter("nonfinite_triangles", "triangles skipped for NaN or infinite positions"),
+        Counter("invalid_faces", "faces skipped for a vertex index outside the mesh"),
     ),
     reference="raster_reference",
 ))
@@ -89,5 +90,6 @@ register(Technique(
     apply=apply_reference,
     outputs=FRAGMENTS,
     options=(CULL,),
-    counters=(Counter("pixel_triangle_tests", "triangles × pixels tested"),),
+    counters=(Counter("pixel_triangle_tests", "triangles × pixels tested"),
+              Counter("invalid_faces", "faces skipped for a vertex index outside the mesh")),
 ))
