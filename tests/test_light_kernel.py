@@ -110,10 +110,10 @@ def test_block_light_lists_hold_every_light_that_reaches_a_point_of_the_block():
     light that truly reaches one of its points, in index order, and the small lights are culled."""
     points = jnp.asarray(np.sort(np.asarray(_surfaces()[0]), axis=0))  # x sorted: compact blocks
     lights = _lights()
-    lists, rows = block_light_lists(points, lights, block_pixels=16)
+    lists, rows = jax.jit(block_light_lists, static_argnames="block_pixels")(points, lights, block_pixels=16)
     lists, rows = np.asarray(lists), np.asarray(rows)
     assert lists.shape == (-(-P // 16), N) and rows.tolist() == [p // 16 for p in range(P)]
-    reaches = np.asarray(light_reaches(lights, points))
+    reaches = np.asarray(jax.jit(light_reaches)(lights, points))
     for block, listed in enumerate(lists):
         count = int(np.sum(listed >= 0))
         assert np.all(listed[:count] >= 0) and np.all(listed[count:] == -1)

@@ -139,12 +139,17 @@ def test_slivers_that_snapping_widens_are_binned_where_they_cover():
         ((-0.150474414229393, -0.827369749546051), (-0.15283775329589844, -0.8241525888442993),
          (-0.14460711181163788, -0.835269570350647), -0.9168532490730286): (987, 816),
     }
+    tile = 8
+
+    @jax.jit
+    def check(clip, column, row):
+        setup = setup_triangles(clip, jnp.asarray([[0, 1, 2]]), resolution=(1080, 1920), cull_backfaces=False)
+        covered, depth = evaluate(setup, jnp.asarray([0]), column + 0.5, row + 0.5)
+        kept = _tile_test(setup, jnp.asarray([0]), (column // tile * tile)[None], (row // tile * tile)[None], tile)
+        return covered[0], depth[0], kept[0]
+
     for (*corners, z), (row, column) in slivers.items():
         clip = jnp.asarray([[x, y, z, 1.0] for x, y in corners], jnp.float32)
-        setup = setup_triangles(clip, jnp.asarray([[0, 1, 2]]), resolution=(1080, 1920), cull_backfaces=False)
-        covered, depth = evaluate(setup, jnp.asarray([0]), jnp.float32(column + 0.5), jnp.float32(row + 0.5))
-        assert bool(covered[0]) and abs(float(depth[0]) - (0.5 * z + 0.5)) < 1e-6
-        tile = 8
-        kept = _tile_test(setup, jnp.asarray([0]), jnp.asarray([float(column // tile * tile)]),
-                          jnp.asarray([float(row // tile * tile)]), tile)
-        assert bool(kept[0])
+        covered, depth, kept = check(clip, jnp.float32(column), jnp.float32(row))
+        assert bool(covered) and abs(float(depth) - (0.5 * z + 0.5)) < 1e-6
+        assert bool(kept)

@@ -9,6 +9,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 SCRIPT = textwrap.dedent('''
@@ -65,6 +67,7 @@ buffers = ["hdr", "ldr"]
 '''
 
 
+@pytest.mark.slow  # a subprocess with two CPU devices compiles the whole pipeline: about 70 s on the 2-core CPU
 def test_sharded_camera_path_equals_frames_rendered_in_order(tmp_path):
     script, config = tmp_path / "sharded.py", tmp_path / "path.toml"
     script.write_text(SCRIPT)

@@ -203,6 +203,7 @@ def test_froxel_blocks_invert_on_a_grid_of_partial_blocks():
     np.testing.assert_array_equal(first[:, 13:, :6], np.broadcast_to(np.asarray(values[:2, 12:13, :6]), (2, 3, 6, 2)))
 
 
+@pytest.mark.slow  # the kernel in Pallas' interpreter over five blocks: about 25 s on the 2-core CPU
 def test_culled_froxel_kernel_equals_the_scan(scene):
     """The froxel medium lit by the kernel (interpreted), whose blocks walk only the lights near them,
     equals the scan over every light, on a grid of partial blocks with small lights."""
