@@ -268,6 +268,13 @@ def edge_values(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Arr
     return e[..., 0] * (px[..., None] - o[..., 0]) + e[..., 1] * (py[..., None] - o[..., 1]) + e[..., 2]
 
 
+def plane_origin(setup: TriangleSetup, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Pixel position ``(x_0, y_0)`` (float32, shape of ``tri``) of the snapped vertex 0 from which the
+    depth plane ``setup.plane`` of triangles ``tri`` (valid indices) is measured; exact in float32."""
+    vertex = setup.fixed[tri][..., 0, :].astype(jnp.float32) / (1 << SUBPIXEL_BITS)
+    return vertex[..., 0], vertex[..., 1]
+
+
 def evaluate(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Coverage and window depth of triangles ``tri`` at pixel centres (``px``, ``py``).
 
@@ -288,7 +295,7 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array)
     coef = setup.depth_coef[t]
     homogeneous = 0.5 + (values[..., 0] * coef[..., 0] + values[..., 1] * coef[..., 1] + values[..., 2] * coef[..., 2])
     plane = setup.plane[t]
-    x0, y0 = fixed[..., 0, 0].astype(jnp.float32) / (1 << SUBPIXEL_BITS), fixed[..., 0, 1].astype(jnp.float32) / (1 << SUBPIXEL_BITS)
+    x0, y0 = plane_origin(setup, t)
     # The offsets are exact; where the plane is flat both products are exactly 0, so the depth is z_0.
     affine = plane[..., 0] + (plane[..., 1] * (px - x0) + plane[..., 2] * (py - y0))
     depth = jnp.where(snapped, affine, homogeneous)

@@ -32,7 +32,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from gpupro.raster.setup import SUBPIXEL_BITS, TriangleSetup, evaluate
+from gpupro.raster.setup import TriangleSetup, evaluate, plane_origin
 
 NO_TRIANGLE = jnp.iinfo(jnp.int32).max
 SNAP_MARGIN = 1.0 / 64
@@ -78,9 +78,9 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     depth_slack = 1e-5 + 1e-5 * jnp.sum(magnitude * jnp.abs(d), axis=-1)
     # Snapped triangles: the depth plane of the snapped vertices, which evaluate() uses (the homogeneous
     # form is ill-conditioned for slivers that snapping widens).
-    plane, vertex = setup.plane[tri], setup.fixed[tri][:, 0].astype(jnp.float32) / (1 << SUBPIXEL_BITS)
-    px = jnp.stack([plane[:, 1] * (lo_x[:, 0] - vertex[:, 0]), plane[:, 1] * (hi_x[:, 0] - vertex[:, 0])])
-    py = jnp.stack([plane[:, 2] * (lo_y[:, 0] - vertex[:, 1]), plane[:, 2] * (hi_y[:, 0] - vertex[:, 1])])
+    plane, (x_0, y_0) = setup.plane[tri], plane_origin(setup, tri)
+    px = jnp.stack([plane[:, 1] * (lo_x[:, 0] - x_0), plane[:, 1] * (hi_x[:, 0] - x_0)])
+    py = jnp.stack([plane[:, 2] * (lo_y[:, 0] - y_0), plane[:, 2] * (hi_y[:, 0] - y_0)])
     affine_lo = plane[:, 0] + jnp.min(px, axis=0) + jnp.min(py, axis=0)
     affine_hi = plane[:, 0] + jnp.max(px, axis=0) + jnp.max(py, axis=0)
     affine_slack = 1e-5 * (jnp.abs(plane[:, 0]) + jnp.max(jnp.abs(px), axis=0) + jnp.max(jnp.abs(py), axis=0))

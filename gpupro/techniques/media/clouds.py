@@ -106,9 +106,9 @@ the rectangle overlaps, count → scan → fill, in the sorted (back-to-front) o
 points grow the capacity to ``tile_particle_capacity_needed`` and render again. Step j of the loop takes
 entries j K … (j + 1) K − 1 (K = ``tile_chunk``) of every tile's list and tests them against that
 tile's pixels only (:func:`render_particles_tiled`); tiles are ordered by decreasing list length and a
-step runs on the first ⌈T/d⌉ tiles, d the largest of 1, 2, 4, …, 64 for which they hold every tile with
-entries left (its share of ``hit_capacity`` is its share of the tiles); the loop ends with the longest list. With ``binning =
-"none"`` (the reference, :func:`render_particles`) every pixel meets every visible particle, in chunks
+step runs on the first ⌈T/d⌉ tiles, d the largest of 1, 2, 4, …, 64 for which they hold every tile
+with entries left (its share of ``hit_capacity`` is its share of the tiles); the loop ends with the
+longest list. With ``binning = "none"`` (the reference, :func:`render_particles`) every pixel meets every visible particle, in chunks
 of ``particle_chunk`` sorted particles, chunks past the visible ones skipped. Either way
 the ray–sphere tests of a step's pixel–particle pairs are dense, the intersecting pairs are compacted
 (count → scan → fill) into ``hit_capacity`` slots and only those are shaded (the LUT fetches), the pairs

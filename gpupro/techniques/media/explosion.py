@@ -98,9 +98,10 @@ so the image is the reference's; j₀ is an integer and the trace is not differe
 JAX. The march is a ``fori_loop`` over the J segments. ``explosion`` marches square tiles of ``tile`` pixels per
 side in turn (``lax.map``), each as long as its longest ray, as a GPU thread group: iterations where no ray of
 the tile still marches are skipped (``lax.cond``), so tiles off the explosion cost nothing and the early out
-and the trace shorten the run as well as the counted work; the trace is a ``while_loop``. On GPUs every tile
-is marched at once by default (``tile_batch``; under ``vmap`` a tile's skip becomes a select, so the batch
-runs as long as its longest ray): one tile a step left the GPU idle, 23.8 s a 1080p frame on an H200. The reference
+and the trace shorten the run as well as the counted work; the trace is a ``while_loop``. On GPUs every
+tile is marched at once by default (``tile_batch``; under ``vmap`` a tile's skip becomes a select, so the
+batch runs as long as its longest ray): one tile a step left the GPU idle, 23.8 s a 1080p frame on an
+H200. The reference
 (``explosion_reference``) marches every segment of the whole chord of every pixel at once with the same samples:
 no sphere tracing, no early out, no tiles.
 
@@ -465,8 +466,8 @@ def render_explosion(params, inputs, camera, *, primitive, placement, noise_size
 
     Options as :func:`march_rays` and the technique; ``tile``: the rays are marched in square tiles of ``tile``
     pixels per side, ``tile_batch`` tiles at a time (None: :func:`default_tile_batch`), or all at once for
-    ``tile`` None. Returns ``(hdr_explosion [H, W, 3],
-    explosion_alpha [H, W], counters)``: the sums of :func:`march_rays`'s work (int32 scalars).
+    ``tile`` None. Returns ``(hdr_explosion [H, W, 3], explosion_alpha [H, W], counters)``: the sums of
+    :func:`march_rays`'s work (int32 scalars).
     """
     if hull_octaves > octaves:
         raise OptionError("hull_octaves", f"expected at most octaves = {octaves}, got {hull_octaves}")

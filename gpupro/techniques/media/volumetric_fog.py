@@ -40,9 +40,9 @@ constant ambient radiance (an isotropic radiance convolved with a normalised pha
 cos θ = l_i · ω: light from a light straight ahead of the camera keeps going towards the eye (forward
 scattering, θ = 0).
 The sum over lights runs as the shared scan over chunks of lights (``light_loop = "scan"``, any
-shadows), or as one Pallas kernel over blocks of 2 × 16 × 8 froxels (rows, columns, slices) that keeps each block's sums in
-registers and walks only the lights whose influence meets the block's bounding box, the chapter's
-per-froxel-tile light culling (``"kernel"``: :func:`fused_scattered_light`, through
+shadows), or as one Pallas kernel over blocks of 2 × 16 × 8 froxels (rows, columns, slices) that keeps
+each block's sums in registers and walks only the lights whose influence meets the block's bounding
+box, the chapter's per-froxel-tile light culling (``"kernel"``: :func:`fused_scattered_light`, through
 :func:`gpupro.shading.light_kernel.list_sums` and the component form of the same incident light; no
 shadows); ``"auto"`` takes the kernel on GPUs when no light is shadowed. The two agree to float
 rounding (tests/test_volumetric_fog.py).
@@ -207,8 +207,8 @@ def fused_scattered_light(points, directions, g, lights: Lights, interpret: bool
     block walking only the lights that may meet its bounding box (:func:`gpupro.shading.light_kernel.
     block_light_lists`, :func:`~gpupro.shading.light_kernel.list_sums`; no shadows), equal to the scan.
     ``points``, ``directions`` [P, 3], ordered so that each run of one :data:`FROXEL_BLOCK`'s size is
-    compact (:func:`froxel_blocks`; any order is correct, a compact one culls more); ``g`` scalar. Differentiable (reverse mode, through the scan,
-    recomputed)."""
+    compact (:func:`froxel_blocks`; any order is correct, a compact one culls more); ``g`` scalar.
+    Differentiable (reverse mode, through the scan, recomputed)."""
     columns = [points[:, 0], points[:, 1], points[:, 2], directions[:, 0], directions[:, 1], directions[:, 2],
                jnp.broadcast_to(jnp.asarray(g, jnp.float32), points.shape[:1])]
     block = math.prod(FROXEL_BLOCK)
