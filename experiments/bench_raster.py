@@ -35,6 +35,7 @@ Usage::
     python experiments/bench_raster.py                       # CPU: 10k, 100k at 640x360; GPU: all
     python experiments/bench_raster.py --all --json out.json # 10k, 100k, 1M × 640x360, 1920x1080
     python experiments/bench_raster.py --sizes 200 --resolutions 32x32 --repeats 2 --no-gl
+    python experiments/bench_raster.py --all --samples 4                 # also 4× MSAA, its cost over 1×
 """
 
 from __future__ import annotations
@@ -84,10 +85,12 @@ def triangle_soup(num_triangles: int, width: int, height: int, *, mean_area: flo
     return clip.reshape(-1, 4).astype(np.float32)
 
 
-def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: int, tile_capacity: int) -> tuple[dict, np.ndarray]:
-    """Times jitted ``rasterize``; returns (results, triangle ids [H, W])."""
+def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: int, tile_capacity: int,
+                 samples: int = 1) -> tuple[dict, np.ndarray]:
+    """Times jitted ``rasterize`` at ``samples`` per pixel; returns (results, triangle ids [H, W(, S)])."""
     faces = np.arange(clip.shape[0], dtype=np.int32).reshape(-1, 3)
-    fn = jax.jit(lambda c, f: rasterize(c, f, resolution=(height, width), tile=tile, tile_capacity=tile_capacity))
+    fn = jax.jit(lambda c, f: rasterize(c, f, resolution=(height, width), samples=samples, tile=tile,
+                                        tile_capacity=tile_capacity))
     timing = time_function(fn, jnp.asarray(clip), jnp.asarray(faces), repeats=repeats)
     frags = timing.pop("result")
     timing["counters"] = {k: int(v) for k, v in frags.counters.items()}
@@ -146,17 +149,21 @@ def format_table(results: list[dict]) -> str:
     header = (
         f"{'triangles':>9} {'resolution':>10} {'compile s':>9} {'median ms':>9} {'min ms':>8} {'max ms':>8} {'peak MiB':>8} "
         f"{'after cull':>10} {'tile pairs':>10} {'max/tile':>8} {'passes':>6} {'overflow':>8} {'GL ms':>8} {'ratio':>6} {'agree':>6}"
+        f"{'MSAA ms':>9} {'MSAA/1':>7}"
     )
     lines = [header, "-" * len(header)]
     for r in results:
         g, c = r["gpupro"], r["gpupro"]["counters"]
         gl = r.get("opengl")
+        ms = r.get("gpupro_multisampled")
+        msaa_cols = (f" {ms['run_ms_median']:8.2f} {ms['run_ms_median'] / g['run_ms_median']:7.2f}" if ms
+                     else f" {'-':>8} {'-':>7}")
         gl_cols = f"{gl['run_ms_median']:8.2f} {r['ratio_gpupro_over_opengl']:6.2f} {gl['agreement']:6.3f}" if gl else f"{'-':>8} {'-':>6} {'-':>6}"
         lines.append(
             f"{r['triangles']:>9} {r['resolution']:>10} {g['compile_s']:9.2f} {g['run_ms_median']:9.2f} {g['run_ms_min']:8.2f} "
             f"{g['run_ms_max']:8.2f} {g['peak_memory']['bytes'] / 2**20:8.0f} {c['triangles_after_culling']:>10} "
             f"{c['tile_triangle_pairs']:>10} {c['max_triangles_per_tile']:>8} {c['binning_passes']:>6} "
-            f"{c['tile_overflow_pairs'] + c['pair_overflow']:>8} {gl_cols}"
+            f"{c['tile_overflow_pairs'] + c['pair_overflow']:>8} {gl_cols}{msaa_cols}"
         )
     return "\n".join(lines)
 
@@ -171,6 +178,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--tile", type=int, default=inspect.signature(rasterize).parameters["tile"].default)
     parser.add_argument("--tile-capacity", type=int, default=inspect.signature(rasterize).parameters["tile_capacity"].default)
+    parser.add_argument("--samples", type=int, default=1,
+                        help="also time this many samples per pixel (2, 4 or 8) and report its cost over 1 sample")
     parser.add_argument("--no-gl", action="store_true", help="skip the OpenGL column")
     parser.add_argument("--json", help="write all results to this file")
     args = parser.parse_args(argv)
@@ -193,6 +202,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{n} triangles at {width}x{height} ...", flush=True)
         gp, gp_ids = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity)
         case = {"triangles": n, "resolution": f"{width}x{height}", "gpupro": gp}
+        if args.samples > 1:
+            case["gpupro_multisampled"], _ = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity,
+                                                          args.samples)
+            case["samples"] = args.samples
         if ctx is not None:
             gl, gl_ids = bench_opengl(ctx, clip, width, height, args.repeats)
             either = (gp_ids >= 0) | (gl_ids >= 0)
@@ -206,7 +219,8 @@ def main(argv: list[str] | None = None) -> None:
     print(format_table(results))
     print("overflow = tile_overflow_pairs + pair_overflow (handled in extra chunks/passes, never dropped); "
           f"peak memory: {results[0]['gpupro']['peak_memory']['source'] if results else '-'}, process peak so far; "
-          "ratio = gpupro median / OpenGL median; agree = fraction of pixels with the same triangle id")
+          "ratio = gpupro median / OpenGL median; agree = fraction of pixels with the same triangle id; "
+          "MSAA/1 = multisampled median / single-sample median")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": info, "opengl": gl_status, "mean_area_px": args.area, "seed": args.seed, "results": results}, f, indent=1)

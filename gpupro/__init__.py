@@ -15,7 +15,7 @@ See ``gpupro list`` for the technique catalogue and README.md for the command li
 from gpupro import scene, scenes, techniques
 from gpupro.fit import FitParameter, check_grads, fit
 from gpupro.pipeline import Pass, Pipeline, PipelineError, complete, default_pipeline, make_pass, pipeline_for
-from gpupro.raster import Fragments, interpolate, rasterize, reference
+from gpupro.raster import Fragments, antialias, interpolate, rasterize, reference
 from gpupro.render import render
 from gpupro.technique import TECHNIQUES, Technique
 from gpupro.techniques.raster.gbuffer import render_gbuffer

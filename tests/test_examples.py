@@ -34,3 +34,25 @@ def test_notebook_example_runs_and_its_claims_hold(capsys):
     grad = np.array(ast.literal_eval(printed(lines, "d brightness / d light colour:")))
     assert grad.shape == (2, 3) and np.all(grad > 0)  # more light, brighter image
     np.testing.assert_allclose(grad, np.round(np.asarray(namespace["grad"]), 5))
+
+
+def test_fit_pose_recovers_the_pose_and_field_of_view(capsys, monkeypatch):
+    monkeypatch.setattr("sys.argv", ["fit_pose.py"])  # the script's defaults: 48 × 48, 100 Adam steps
+    namespace = runpy.run_path(str(EXPERIMENTS / "fit_pose.py"), run_name="__main__")
+    lines = capsys.readouterr().out.splitlines()
+
+    def errors(prefix):
+        """(rotation deg, translation, fov deg) from 'rotation R deg, translation T, fov_y F deg'."""
+        words = printed(lines, prefix).replace(",", "").split()
+        return float(words[1]), float(words[4]), float(words[6])
+
+    assert printed(lines, "true pose:").startswith("rotation [0.35, -0.55, 0.2] (axis-angle)")
+    initial, final = errors("initial error:"), errors("final error:")
+    assert initial[0] > 10 and initial[1] > 0.2 and initial[2] > 5  # a real perturbation to undo
+    for before, after in zip(initial, final):
+        assert after < before / 20  # every error shrinks by more than 20× (measured 180×, 290×, 2800×)
+    assert final[0] < 0.5 and final[1] < 0.005 and final[2] < 0.1  # degrees, world units, degrees
+    result = namespace["result"]
+    np.testing.assert_allclose(final, namespace["errors"](result["fitted"], result["truth"]), rtol=1e-3, atol=1e-3)
+    first, last = (float(x) for x in printed(lines, "loss:").split()[0:3:2])
+    assert last < 1e-3 * first and np.isclose(first, result["losses"][0], rtol=1e-3)

@@ -16,8 +16,8 @@ RES = (48, 64)
 def coverage_count(clip, faces, *, cull_backfaces):
     """How many triangles cover each pixel centre [H, W] (every triangle, no binning)."""
     setup = setup_triangles(jnp.asarray(clip, jnp.float32), jnp.asarray(faces, jnp.int32), resolution=RES, cull_backfaces=cull_backfaces)
-    py, px = np.meshgrid(np.arange(RES[0]) + 0.5, np.arange(RES[1]) + 0.5, indexing="ij")
-    covered, _ = evaluate(setup, jnp.arange(len(faces))[:, None, None], jnp.asarray(px, jnp.float32), jnp.asarray(py, jnp.float32))
+    row, column = np.meshgrid(np.arange(RES[0]), np.arange(RES[1]), indexing="ij")
+    covered, _ = evaluate(setup, jnp.arange(len(faces))[:, None, None], jnp.asarray(16 * column + 8), jnp.asarray(16 * row + 8), 0, 0)
     return np.asarray(covered).sum(axis=0)
 
 

@@ -29,8 +29,8 @@ def _to_clip(window, w=None):
 def _coverage(clip, faces, cull=True):
     """Whether each triangle covers each pixel centre [F, H, W], every triangle tested (no binning)."""
     setup = setup_triangles(clip, faces, resolution=RES, cull_backfaces=cull)
-    py, px = jnp.meshgrid(jnp.arange(RES[0]) + 0.5, jnp.arange(RES[1]) + 0.5, indexing="ij")
-    return evaluate(setup, jnp.arange(faces.shape[0])[:, None, None], px.astype(jnp.float32), py.astype(jnp.float32))[0]
+    row, column = jnp.meshgrid(jnp.arange(RES[0]), jnp.arange(RES[1]), indexing="ij")
+    return evaluate(setup, jnp.arange(faces.shape[0])[:, None, None], 16 * column + 8, 16 * row + 8, 0, 0)[0]
 
 
 def _counts(clip, faces):
@@ -144,12 +144,13 @@ def test_slivers_that_snapping_widens_are_binned_where_they_cover():
     @jax.jit
     def check(clip, column, row):
         setup = setup_triangles(clip, jnp.asarray([[0, 1, 2]]), resolution=(1080, 1920), cull_backfaces=False)
-        covered, depth = evaluate(setup, jnp.asarray([0]), column + 0.5, row + 0.5)
-        kept = _tile_test(setup, jnp.asarray([0]), (column // tile * tile)[None], (row // tile * tile)[None], tile)
+        covered, depth = evaluate(setup, jnp.asarray([0]), 16 * column + 8, 16 * row + 8, 0, 0)
+        kept = _tile_test(setup, jnp.asarray([0]), (column // tile * tile)[None].astype(jnp.float32),
+                          (row // tile * tile)[None].astype(jnp.float32), tile, 1)
         return covered[0], depth[0], kept[0]
 
     for (*corners, z), (row, column) in slivers.items():
         clip = jnp.asarray([[x, y, z, 1.0] for x, y in corners], jnp.float32)
-        covered, depth, kept = check(clip, jnp.float32(column), jnp.float32(row))
+        covered, depth, kept = check(clip, jnp.int32(column), jnp.int32(row))
         assert bool(covered) and abs(float(depth) - (0.5 * z + 0.5)) < 1e-6
         assert bool(kept)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.raster.reference import rasterize_brute_force
-from gpupro.raster.setup import TriangleSetup, barycentrics, setup_triangles
+from gpupro.raster.setup import SAMPLE_PATTERNS, TriangleSetup, barycentrics, setup_triangles
 from gpupro.raster.tiled import default_pair_capacity, rasterize_tiled
 
 
@@ -28,6 +28,11 @@ class Fragments(typing.NamedTuple):
     ``barycentrics`` float32 [H, W, 3]: perspective-correct, summing to 1 (0 where empty);
     ``bary_dx``, ``bary_dy`` float32 [H, W, 3]: their derivatives per pixel step right and down;
     ``counters``: dict of int32 scalars (work done and capacities exceeded).
+
+    Multisampled (``samples`` = S > 1): one fragment per sample, a sample axis after the pixel axes
+    (``triangle_id``, ``depth`` [H, W, S]; ``barycentrics``, ``bary_dx``, ``bary_dy`` [H, W, S, 3]). Each
+    sample's triangle is interpolated at the pixel centre, as MSAA shades once per pixel and triangle,
+    so samples of one triangle in a pixel hold the same attributes.
     """
 
     triangle_id: jax.Array
@@ -120,28 +125,42 @@ def _pad(clip: jax.Array, faces: jax.Array, valid: jax.Array) -> tuple[jax.Array
     return clip, faces, jnp.pad(valid, (0, _bucket(f) - f))
 
 
+def _check_samples(samples) -> int:
+    """A sample count of :data:`gpupro.raster.setup.SAMPLE_PATTERNS` (1, 2, 4 or 8), or ValueError."""
+    if not _is_int(samples) or samples not in SAMPLE_PATTERNS:
+        raise ValueError(f"rasterize: samples must be one of {sorted(SAMPLE_PATTERNS)}, got {samples!r}")
+    return int(samples)
+
+
 def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -> Fragments:
+    """Fragments of per-sample ids and depths [H, W, S], interpolated at pixel centres; S = 1 is squeezed."""
     height, width = resolution
     py, px = jnp.meshgrid(jnp.arange(height, dtype=jnp.float32) + 0.5, jnp.arange(width, dtype=jnp.float32) + 0.5, indexing="ij")
+    if triangle_id.shape[-1] == 1:
+        triangle_id, depth = triangle_id[..., 0], depth[..., 0]
+    else:
+        px, py = px[..., None], py[..., None]
     b, db_dx, db_dy = barycentrics(setup, triangle_id, px, py)
     return Fragments(triangle_id, depth, b, db_dx, db_dy, counters)
 
 
-@functools.partial(jax.jit, static_argnames=("resolution", "cull_backfaces", "tile", "tile_capacity", "pair_capacity", "chunk_batch"))
-def _rasterize_padded(clip, faces, valid, *, resolution, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch) -> Fragments:
+@functools.partial(jax.jit, static_argnames=("resolution", "samples", "cull_backfaces", "tile", "tile_capacity",
+                                              "pair_capacity", "chunk_batch"))
+def _rasterize_padded(clip, faces, valid, *, resolution, samples, cull_backfaces, tile, tile_capacity, pair_capacity,
+                      chunk_batch) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
     triangle_id, depth, counters = rasterize_tiled(
-        setup, resolution=resolution, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity, chunk_batch=chunk_batch
+        setup, resolution=resolution, samples=samples, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity, chunk_batch=chunk_batch
     )
     # Only the caller's valid faces: padding and replaced faces all read vertex 0, which may be NaN.
     counters["nonfinite_triangles"] = jnp.sum(~setup.finite & valid).astype(jnp.int32)
     return _fragments(setup, triangle_id, depth, counters, resolution)
 
 
-@functools.partial(jax.jit, static_argnames=("resolution", "cull_backfaces"))
-def _reference_padded(clip, faces, *, resolution, cull_backfaces) -> Fragments:
+@functools.partial(jax.jit, static_argnames=("resolution", "samples", "cull_backfaces"))
+def _reference_padded(clip, faces, *, resolution, samples, cull_backfaces) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
-    triangle_id, depth = rasterize_brute_force(setup, resolution=resolution)
+    triangle_id, depth = rasterize_brute_force(setup, resolution=resolution, samples=samples)
     return _fragments(setup, triangle_id, depth, {}, resolution)
 
 
@@ -150,9 +169,10 @@ def rasterize(
     faces: jax.Array,
     *,
     resolution: tuple[int, int],
+    samples: int = 1,
     cull_backfaces: bool = False,
     tile: int = 8,
-    tile_capacity: int = 32,
+    tile_capacity: int = 16,
     pair_capacity: int | None = None,
     chunk_batch: int | None = None,
 ) -> Fragments:
@@ -163,12 +183,16 @@ def rasterize(
       faces: integer [F, 3] vertex indices (cast to int32 once checked); counter-clockwise in NDC is
         front-facing.
       resolution: ``(height, width)`` in pixels, two integers > 0 (static).
+      samples: samples per pixel, 1, 2, 4 or 8, at D3D's standard positions
+        (:data:`gpupro.raster.setup.SAMPLE_PATTERNS`); above 1 the fragments gain a sample axis
+        (:class:`Fragments`; :func:`gpupro.raster.resolve` averages it) (static).
       cull_backfaces: drop clockwise (back-facing) triangles (static).
       tile: tile edge in pixels, an integer >= 1 (static).
       tile_capacity: triangles resolved per tile chunk, >= 1; tiles with more take several chunks (static).
       pair_capacity: (triangle, tile) candidate pairs per binning pass, >= 1 or None; more take
         several passes (static; None: from F and the tile count).
-      chunk_batch: tile chunks resolved per step, >= 1 or None (static; None: the number of tiles).
+      chunk_batch: tile chunks resolved per step, >= 1 or None (static; None: the number of tiles,
+        divided by ``samples``).
 
     Returns:
       :class:`Fragments`. Nothing is dropped when a capacity is exceeded: the excess is processed
@@ -182,6 +206,7 @@ def rasterize(
       Vertex and face counts are padded to powers of two so that changing counts reuse compiled code.
     """
     clip, faces, resolution = _check_inputs(clip, faces, resolution, "rasterize")
+    samples = _check_samples(samples)
     tile = _check_option("tile", tile)
     tile_capacity = _check_option("tile_capacity", tile_capacity)
     pair_capacity = _check_option("pair_capacity", pair_capacity, optional=True)
@@ -195,11 +220,12 @@ def rasterize(
         faces,
         valid,
         resolution=resolution,
+        samples=samples,
         cull_backfaces=cull_backfaces,
         tile=tile,
         tile_capacity=tile_capacity,
         pair_capacity=pair_capacity or default_pair_capacity(faces.shape[0], num_tiles),
-        chunk_batch=chunk_batch or num_tiles,
+        chunk_batch=chunk_batch or max(1, num_tiles // samples),
     )
     return frags._replace(counters=dict(frags.counters, triangles=jnp.int32(num_faces), invalid_faces=invalid))
 
@@ -209,18 +235,21 @@ def reference(
     faces: jax.Array,
     *,
     resolution: tuple[int, int],
+    samples: int = 1,
     cull_backfaces: bool = False,
 ) -> Fragments:
     """Brute-force rasterization with the same inputs and outputs as :func:`rasterize`.
 
-    ``clip`` float32 [V, 4], ``faces`` integer [F, 3], ``resolution`` (height, width); returns
-    :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics).
-    Every triangle is tested at every pixel; ``counters`` has ``pixel_triangle_tests`` (F H W) and
+    ``clip`` float32 [V, 4], ``faces`` integer [F, 3], ``resolution`` (height, width), ``samples`` per
+    pixel; returns :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics; a sample axis
+    after H, W when ``samples`` > 1).
+    Every triangle is tested at every sample; ``counters`` has ``pixel_triangle_tests`` (F H W) and
     ``invalid_faces`` (faces with an index outside [0, V), never drawn, as in :func:`rasterize`).
     """
     clip, faces, resolution = _check_inputs(clip, faces, resolution, "reference")
+    samples = _check_samples(samples)
     tests = jnp.int32(faces.shape[0] * resolution[0] * resolution[1])
     faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
     clip, faces, _ = _pad(clip, faces, valid)
-    frags = _reference_padded(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
+    frags = _reference_padded(clip, faces, resolution=resolution, samples=samples, cull_backfaces=cull_backfaces)
     return frags._replace(counters={"pixel_triangle_tests": tests, "invalid_faces": invalid})

@@ -92,7 +92,27 @@ SUBPIXEL_BITS = 8
 GUARD_BAND = 1 << 14
 """Window coordinates (pixels, either sign) within which triangles are snapped; past it, hardware clips."""
 _LIMB = 12  # split of the exact products: factors below 2^23 → partial products below 2^24
+_CLAMP_HIGH = 1 << 10  # high limbs from which |E / 16| ≥ 2^30 (exact_quotient)
+_CLAMP = 1 << 30
+SAMPLE_REACH = 64
+"""Largest offset, in 1/16 pixel along x or y, from a base point of :func:`edge_thresholds` to a sample."""
 _SNAP_RESOLUTION = 1 << 13  # images up to 8192 pixels a side are snapped
+
+
+SAMPLE_PATTERNS = {
+    1: ((0, 0),),
+    2: ((4, 4), (-4, -4)),
+    4: ((-2, -6), (6, -2), (-6, 2), (2, 6)),
+    8: ((1, -3), (-1, 3), (5, 1), (-3, -5), (-5, 5), (-7, -1), (3, 7), (7, -7)),
+}
+"""The standard sample positions of D3D (``D3D11_STANDARD_MULTISAMPLE_PATTERN``): offsets (x, y) from the
+pixel centre in 1/16 pixel, y down, for 1, 2, 4 and 8 samples per pixel."""
+
+
+def sample_offsets(samples: int) -> tuple[jax.Array, jax.Array]:
+    """``(offset_x, offset_y)`` int32 [S]: the offsets of :data:`SAMPLE_PATTERNS` for ``samples`` = S."""
+    pattern = jnp.asarray(SAMPLE_PATTERNS[samples], jnp.int32)
+    return pattern[:, 0], pattern[:, 1]
 
 
 def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int, int], cull_backfaces: bool) -> TriangleSetup:
@@ -100,7 +120,13 @@ def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int,
     height, width = resolution
     c = clip[faces]  # [F, 3, 4]
     x, y, z, w = c[..., 0], c[..., 1], c[..., 2], c[..., 3]
+    snapped, fixed, fixed_edges, fixed_owns, area_sign, plane = _snap(c, width, height)
     v = jnp.stack([(x + w) * (0.5 * width), (w - y) * (0.5 * height), w], axis=-1)  # [F, 3, 3]
+    # Snapped triangles are interpolated on their snapped positions, w · (X/256, Y/256, 1). The snap
+    # has zero derivative, so it enters as a constant offset: gradients stay those of the float positions.
+    snap_offset = fixed.astype(jnp.float32) / (1 << SUBPIXEL_BITS) * w[..., None] - v[..., :2]
+    snap_offset = jnp.where(snapped[:, None, None], jax.lax.stop_gradient(snap_offset), 0.0)
+    v = v + jnp.pad(snap_offset, ((0, 0), (0, 0), (0, 1)))
     v1 = jnp.roll(v, -1, axis=1)
     v2 = jnp.roll(v, -2, axis=1)
     # Edge i (opposite vertex i) from its endpoints in a canonical order, so that the two triangles
@@ -126,7 +152,6 @@ def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int,
     finite = jnp.all(jnp.isfinite(c), axis=(1, 2))
     # Repeated vertex indices mean zero area; rounding (fused products) could make det tiny, not 0.
     distinct = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
-    snapped, fixed, fixed_edges, fixed_owns, area_sign, plane = _snap(c, width, height)
     area_sign = jnp.where(snapped, area_sign, jnp.sign(det).astype(jnp.int32))
     owns_edge = jnp.where(snapped[:, None], fixed_owns, owns_edge)
     visible = (area_sign != 0) & distinct & ~outside_one_plane & finite
@@ -142,21 +167,47 @@ def _split(f):
     return f >> _LIMB, f & ((1 << _LIMB) - 1)
 
 
-def exact_sign(a, x, b, y):
-    """Exact sign of a·x + b·y: int32 [...] in {−1, 0, 1} for int32 arrays ``a``, ``x``, ``b``, ``y``
-    (broadcast to [...]) below 2^23 in magnitude.
+def exact_quotient(a, x, b, y):
+    """``(q, r)`` with a·x + b·y = 16 q + r and 0 ≤ r < 16, exactly, for int32 arrays ``a``, ``x``, ``b``,
+    ``y`` (broadcast together) below 2^23 in magnitude; ``q`` is clamped to [−2^30, 2^30].
 
-    The product needs up to 47 bits: with the 12-bit splits of :func:`_split`, the value is h 2^24 +
-    m 2^12 + l with int32 partial sums h, m, l; carrying l and then m upwards leaves 0 ≤ m, l < 2^12,
-    so the sign is h's unless h = 0."""
+    The value needs up to 47 bits: with the 12-bit splits of :func:`_split` it is h 2^24 + m 2^12 + l
+    with int32 partial sums h, m, l; carrying l and then m upwards leaves 0 ≤ m, l < 2^12, so q = h 2^20
+    + m 2^4 + ⌊l / 16⌋ and r = l mod 16. Past |h| ≥ 2^10 the quotient is at least 2^30 in magnitude and
+    is clamped: only its sign matters to :func:`edge_thresholds`."""
     (ah, al), (xh, xl), (bh, bl), (yh, yl) = _split(a), _split(x), _split(b), _split(y)
     high = ah * xh + bh * yh
     mid = ah * xl + al * xh + bh * yl + bl * yh
     low = al * xl + bl * yl
     mid = mid + (low >> _LIMB)
     high = high + (mid >> _LIMB)
-    rest = ((mid & ((1 << _LIMB) - 1)) | (low & ((1 << _LIMB) - 1))) != 0
-    return jnp.where(high != 0, jnp.sign(high), rest.astype(jnp.int32))
+    mask = (1 << _LIMB) - 1
+    exact = (jnp.clip(high, -_CLAMP_HIGH, _CLAMP_HIGH) << (2 * _LIMB - 4)) + ((mid & mask) << (_LIMB - 4)) + ((low & mask) >> 4)
+    q = jnp.where(high >= _CLAMP_HIGH, _CLAMP, jnp.where(high < -_CLAMP_HIGH, -_CLAMP, exact))
+    return q, low & 15
+
+
+def exact_sign(a, x, b, y):
+    """Exact sign of a·x + b·y: int32 [...] in {−1, 0, 1}, for the arguments of :func:`exact_quotient`."""
+    q, r = exact_quotient(a, x, b, y)  # a·x + b·y ∈ [16 q, 16 q + 16)
+    return jnp.where(q != 0, jnp.sign(q), (r > 0).astype(jnp.int32))
+
+
+def edge_thresholds(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array) -> jax.Array:
+    """Integer thresholds k int32 [..., 3] of snapped triangles ``tri`` (valid indices, shape [...]) at base
+    points (``base_x``, ``base_y``) int32, in 1/16 pixel, broadcastable to [...].
+
+    A sample at base + (d_x, d_y) (1/16 pixel, |d| ≤ 64) is inside edge i, top-left rule included, iff
+    a_i d_x + b_i d_y ≥ k_i, an int32 comparison. With E_i(base) = 16 q + r (:func:`exact_quotient`),
+    E_i(sample) = 16 (q + a d_x + b d_y) + r, so the sample is inside (E > 0, or E = 0 on an owned
+    edge) iff q + a d_x + b d_y ≥ t with t = 0 where r > 0 or the edge is owned, else 1. |a d_x + b d_y|
+    < 2^30, so a clamped q still decides alone."""
+    fixed, fixed_edges = setup.fixed[tri], setup.fixed_edges[tri]
+    origin = jnp.roll(fixed, -1, axis=-2)  # edge i starts at vertex i + 1
+    to_fixed = lambda p: (jnp.asarray(p, jnp.int32) << (SUBPIXEL_BITS - 4))[..., None]
+    q, r = exact_quotient(fixed_edges[..., 1], to_fixed(base_x) - origin[..., 0],
+                          fixed_edges[..., 0], to_fixed(base_y) - origin[..., 1])
+    return jnp.where((r > 0) | setup.owns_edge[tri], 0, 1) - q
 
 
 def _snap(c: jax.Array, width: int, height: int):
@@ -261,13 +312,6 @@ def _clipped_bbox(c: jax.Array, width: int, height: int) -> jax.Array:
     return jnp.clip(bbox + margin, limit_lo, limit_hi)
 
 
-def edge_values(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array) -> jax.Array:
-    """Edge functions [S, 3] of triangles ``tri`` (valid indices, shape S) at pixel centres (px, py)."""
-    e = setup.edges[tri]
-    o = setup.edge_origin[tri]
-    return e[..., 0] * (px[..., None] - o[..., 0]) + e[..., 1] * (py[..., None] - o[..., 1]) + e[..., 2]
-
-
 def plane_origin(setup: TriangleSetup, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Pixel position ``(x_0, y_0)`` (float32, shape of ``tri``) of the snapped vertex 0 from which the
     depth plane ``setup.plane`` of triangles ``tri`` (valid indices) is measured; exact in float32."""
@@ -275,31 +319,73 @@ def plane_origin(setup: TriangleSetup, tri: jax.Array) -> tuple[jax.Array, jax.A
     return vertex[..., 0], vertex[..., 1]
 
 
-def evaluate(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Coverage and window depth of triangles ``tri`` at pixel centres (``px``, ``py``).
+def _exact_products(slope: jax.Array, offset: jax.Array) -> jax.Array:
+    """slope · offset / 256 (float32) for an int32 ``offset`` below 2^23 in magnitude, as a fixed sum of four
+    products that are each exact in float32 (12-bit halves of both factors).
 
-    ``tri`` int32 array (any shape S, entries outside [0, F) are never covered); ``px``, ``py``
-    float32 broadcastable to S. Returns ``(covered bool [S], depth float32 [S])``.
+    A compiler may fuse a product into the add that follows it (FMA) in one program and not in another;
+    for an exact product both give the same result, so depths agree to the bit wherever they are computed."""
+    bits = jax.lax.bitcast_convert_type(slope, jnp.int32)
+    slope_hi = jax.lax.bitcast_convert_type(bits & ~0xFFF, jnp.float32)  # the leading 12 bits
+    slope_lo = slope - slope_hi
+    scale = 1.0 / (1 << SUBPIXEL_BITS)
+    offset_hi = (offset & ~0x7FF).astype(jnp.float32) * scale  # at most 12 significant bits
+    offset_lo = (offset & 0x7FF).astype(jnp.float32) * scale  # 11 bits
+    return (slope_hi * offset_hi + slope_lo * offset_hi) + (slope_hi * offset_lo + slope_lo * offset_lo)
+
+
+def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array, offset_x: jax.Array,
+             offset_y: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Coverage and window depth of triangles ``tri`` at the samples base + offset.
+
+    ``tri`` int32 [...A] (entries outside [0, F) are never covered); ``base_x``, ``base_y`` int32,
+    broadcastable to [...A]: a point per triangle (a pixel centre, a block of pixels' centre), in 1/16
+    pixel; ``offset_x``, ``offset_y`` int32 [...D], broadcast together: the samples' offsets from the
+    base in 1/16 pixel, at most :data:`SAMPLE_REACH` in magnitude. Returns ``(covered bool [...A, ...D],
+    depth float32 [...A, ...D])``. The result at a sample does not depend on the base it is measured from:
+    snapped triangles' coverage is exact (:func:`edge_thresholds`), and every depth and float edge is
+    evaluated at the sample's absolute position.
     """
     valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
     t = jnp.where(valid_index, tri, 0)
-    snapped = setup.snapped[t]
-    values = edge_values(setup, t, px, py)
-    # Exact integer edges of snapped triangles; pixel centres are exact in 1/256 pixel.
-    centre = lambda p: (jnp.asarray(p) * (1 << SUBPIXEL_BITS)).astype(jnp.int32)[..., None]
-    fixed, fixed_edges = setup.fixed[t], setup.fixed_edges[t]
-    origin = jnp.roll(fixed, -1, axis=-2)  # edge i starts at vertex i + 1
-    sign = exact_sign(fixed_edges[..., 1], centre(px) - origin[..., 0], fixed_edges[..., 0], centre(py) - origin[..., 1])
-    inside_edges = jnp.where(snapped[..., None], jnp.where(setup.owns_edge[t], sign >= 0, sign > 0),
-                             jnp.where(setup.owns_edge[t], values >= 0, values > 0))
-    coef = setup.depth_coef[t]
-    homogeneous = 0.5 + (values[..., 0] * coef[..., 0] + values[..., 1] * coef[..., 1] + values[..., 2] * coef[..., 2])
+    offset_x, offset_y = jnp.broadcast_arrays(jnp.asarray(offset_x, jnp.int32), jnp.asarray(offset_y, jnp.int32))
+    trailing = (...,) + (None,) * offset_x.ndim
+    shape = jnp.broadcast_shapes(t.shape, jnp.shape(base_x), jnp.shape(base_y))
+    base_x, base_y = jnp.broadcast_to(base_x, shape), jnp.broadcast_to(base_y, shape)
+    t = jnp.broadcast_to(t, shape)
+    # Snapped triangles: exact integer edges, one threshold per base and an int32 product per sample.
+    k = edge_thresholds(setup, t, base_x, base_y)
+    step = setup.fixed_edges[t]  # (b, a) of each edge, [...A, 3, 2]
+    exact = [step[..., i, 1][trailing] * offset_x + step[..., i, 0][trailing] * offset_y >= k[..., i][trailing]
+             for i in range(3)]
+    sample_x = ((base_x[trailing] + offset_x) << (SUBPIXEL_BITS - 4))  # 1/256 pixel
+    sample_y = ((base_y[trailing] + offset_y) << (SUBPIXEL_BITS - 4))
+    vertex = setup.fixed[t][..., 0, :]
     plane = setup.plane[t]
-    x0, y0 = plane_origin(setup, t)
-    # The offsets are exact; where the plane is flat both products are exactly 0, so the depth is z_0.
-    affine = plane[..., 0] + (plane[..., 1] * (px - x0) + plane[..., 2] * (py - y0))
-    depth = jnp.where(snapped, affine, homogeneous)
-    covered = valid_index & setup.visible[t] & jnp.all(inside_edges, axis=-1) & (depth >= 0) & (depth <= 1)
+    at = lambda q, *index: q[(...,) + index][trailing]  # a per-triangle entry [...A] → [...A, 1...]
+    affine = at(plane, 0) + (_exact_products(at(plane, 1), sample_x - vertex[..., 0][trailing])
+                             + _exact_products(at(plane, 2), sample_y - vertex[..., 1][trailing]))
+
+    def homogeneous():
+        """Other triangles: the float edges and homogeneous depth at the samples (exact in float32)."""
+        px, py = sample_x.astype(jnp.float32) / 256, sample_y.astype(jnp.float32) / 256
+        e, o, owns, coef = setup.edges[t], setup.edge_origin[t], setup.owns_edge[t], setup.depth_coef[t]
+        values = [at(e, i, 0) * (px - at(o, i, 0)) + at(e, i, 1) * (py - at(o, i, 1)) + at(e, i, 2) for i in range(3)]
+        inside = [jnp.where(at(owns, i), values[i] >= 0, values[i] > 0) for i in range(3)]
+        depth = 0.5 + (values[0] * at(coef, 0) + values[1] * at(coef, 1) + values[2] * at(coef, 2))
+        return jnp.broadcast_to(inside[0] & inside[1] & inside[2], full), jnp.broadcast_to(depth, full)
+
+    visible = valid_index & setup.visible[t]
+    snapped = setup.snapped[t]
+    full = jnp.broadcast_shapes(affine.shape, visible[trailing].shape)
+    # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
+    # unless the caller vmaps).
+    float_inside, float_depth = jax.lax.cond(
+        jnp.any(visible & ~snapped), homogeneous, lambda: (jnp.zeros(full, bool), jnp.zeros(full, jnp.float32)))
+    snapped = snapped[trailing]
+    inside = jnp.where(snapped, exact[0] & exact[1] & exact[2], float_inside)
+    depth = jnp.where(snapped, affine, float_depth)
+    covered = visible[trailing] & inside & (depth >= 0) & (depth <= 1)
     return covered, depth
 
 
@@ -310,12 +396,15 @@ def barycentrics(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Ar
     pixel step right (``x``) and down (``y``). Zero where ``tri`` is -1.
     """
     t = jnp.where(tri >= 0, tri, 0)
-    e = setup.edges[t]
-    values = edge_values(setup, t, px, py)
-    total = jnp.sum(values, axis=-1, keepdims=True)
+    # One gather per scalar and per-edge arrays: trailing axes of 3 vectorise poorly on CPUs (3× slower).
+    e = [[setup.edges[:, i, j][t] for j in range(3)] for i in range(3)]
+    o = [[setup.edge_origin[:, i, j][t] for j in range(2)] for i in range(3)]
+    values = [e[i][0] * (px - o[i][0]) + e[i][1] * (py - o[i][1]) + e[i][2] for i in range(3)]
+    total = values[0] + values[1] + values[2]
     safe = jnp.where(total != 0, total, 1.0)
-    b = values / safe
-    db_dx = (e[..., 0] - b * jnp.sum(e[..., 0], axis=-1, keepdims=True)) / safe
-    db_dy = (e[..., 1] - b * jnp.sum(e[..., 1], axis=-1, keepdims=True)) / safe
-    empty = (tri < 0)[..., None]
-    return tuple(jnp.where(empty, 0.0, q) for q in (b, db_dx, db_dy))
+    b = [v / safe for v in values]
+    sum_a, sum_b = e[0][0] + e[1][0] + e[2][0], e[0][1] + e[1][1] + e[2][1]
+    db_dx = [(e[i][0] - b[i] * sum_a) / safe for i in range(3)]
+    db_dy = [(e[i][1] - b[i] * sum_b) / safe for i in range(3)]
+    empty = tri < 0
+    return tuple(jnp.stack([jnp.where(empty, 0.0, q) for q in qs], axis=-1) for qs in (b, db_dx, db_dy))

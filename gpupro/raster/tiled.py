@@ -32,7 +32,7 @@ import math
 import jax
 import jax.numpy as jnp
 
-from gpupro.raster.setup import TriangleSetup, evaluate, plane_origin
+from gpupro.raster.setup import SAMPLE_PATTERNS, TriangleSetup, evaluate, plane_origin, sample_offsets
 
 NO_TRIANGLE = jnp.iinfo(jnp.int32).max
 SNAP_MARGIN = 1.0 / 64
@@ -57,14 +57,15 @@ def merge_depth(zbuf: jax.Array, ids: jax.Array, where: jax.Array, depth: jax.Ar
     return new_z, kept.at[where].min(candidate, mode="drop")
 
 
-def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Array, tile: int) -> jax.Array:
-    """Whether triangles ``tri`` [P] may cover a pixel centre of the tiles whose corner pixels are (x0, y0)."""
+def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Array, tile: int, samples: int) -> jax.Array:
+    """Whether triangles ``tri`` [P] may cover a sample of the tiles whose corner pixels are (x0, y0)."""
     e = setup.edges[tri]  # [P, 3, 3]
     o = setup.edge_origin[tri]  # [P, 3, 2]
-    # The tile's pixel centres widened by SNAP_MARGIN: a snapped triangle lies within √2/512 pixel of its
-    # float form (gpupro.raster.setup), so this test against the float edges stays conservative.
-    lo_x, hi_x = (x0 + 0.5 - SNAP_MARGIN)[:, None], (x0 + tile - 0.5 + SNAP_MARGIN)[:, None]
-    lo_y, hi_y = (y0 + 0.5 - SNAP_MARGIN)[:, None], (y0 + tile - 0.5 + SNAP_MARGIN)[:, None]
+    # The box of the tile's samples widened by SNAP_MARGIN: the float edges of a snapped triangle come
+    # from its snapped vertices up to rounding, so this test against them stays conservative.
+    reach = max(abs(v) for offset in SAMPLE_PATTERNS[samples] for v in offset) / 16 + SNAP_MARGIN
+    lo_x, hi_x = (x0 + 0.5 - reach)[:, None], (x0 + tile - 0.5 + reach)[:, None]
+    lo_y, hi_y = (y0 + 0.5 - reach)[:, None], (y0 + tile - 0.5 + reach)[:, None]
     a, b, c = e[..., 0], e[..., 1], e[..., 2]
     ax = jnp.stack([a * (lo_x - o[..., 0]), a * (hi_x - o[..., 0])])
     by = jnp.stack([b * (lo_y - o[..., 1]), b * (hi_y - o[..., 1])])
@@ -90,22 +91,70 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     return edges_ok & (highest >= 0) & (lowest <= 1)
 
 
+def _resolve_chunks(setup, zbuf, ids, chunks, tile_start, counts, tri_sorted, tile_capacity, *, batch, tile, tiles_x,
+                    samples):
+    """Resolves the tiles' lists (``counts`` [tiles] triangles from ``tile_start`` in ``tri_sorted``) as
+    ``chunks`` [tiles] chunks of ``tile_capacity`` triangles, ``batch`` chunks a step, into the z-buffer
+    ``zbuf``, ``ids`` [tiles, T² S]. Returns ``(zbuf, ids, number of chunks)``."""
+    num_tiles = counts.shape[0]
+    chunk_end = jnp.cumsum(chunks)
+    chunk_start = chunk_end - chunks
+    total = chunk_end[-1]
+    lane = jnp.arange(tile_capacity, dtype=jnp.int32)
+    block, blocks, block_corner, offset_x, offset_y = _sample_layout(tile, samples)
+
+    def chunk_pass(state):
+        first, zbuf, ids = state
+        g = first + jnp.arange(batch, dtype=jnp.int32)
+        t = jnp.minimum(jnp.searchsorted(chunk_end, g, side="right").astype(jnp.int32), num_tiles - 1)
+        position = (g - chunk_start[t])[:, None] * tile_capacity + lane[None, :]  # [B, C]
+        live = (g < total)[:, None] & (position < counts[t][:, None])
+        cand = jnp.where(live, tri_sorted[jnp.minimum(tile_start[t][:, None] + position, tri_sorted.shape[0] - 1)], -1)
+        base_x = (16 * tile * (t % tiles_x))[:, None, None, None] + block_corner  # [B, 1, 1, blocks]
+        base_y = (16 * tile * (t // tiles_x))[:, None, None, None] + block_corner[:, None]  # [B, 1, blocks, 1]
+        covered, depth = evaluate(setup, cand[:, :, None, None], base_x, base_y, offset_x, offset_y)
+        depth = jnp.where(covered, depth, jnp.inf).reshape(cand.shape + (-1,))  # [B, C, T² S]
+        best = jnp.min(depth, axis=1)
+        winner = jnp.min(jnp.where(depth == best[:, None], cand[:, :, None], NO_TRIANGLE), axis=1)
+        zbuf, ids = merge_depth(zbuf, ids, jnp.where(g < total, t, num_tiles), best, winner)
+        return first + batch, zbuf, ids
+
+    _, zbuf, ids = jax.lax.while_loop(lambda s: s[0] < total, chunk_pass, (jnp.int32(0), zbuf, ids))
+    return zbuf, ids, total
+
+
+def _sample_layout(tile: int, samples: int):
+    """``(block, blocks, block_corner int32 [blocks], offset_x, offset_y int32 [n² S])``: exact coverage is
+    measured from the centre of each block of n × n pixels (n = block ≤ 8 divides the tile), so that every
+    sample lies within SAMPLE_REACH of it; a tile's samples lie along one flat axis in (block row, block
+    column, row, column, sample) order, which vectorises far better than small trailing axes."""
+    block = max(n for n in range(1, 9) if tile % n == 0)
+    centre = 16 * jnp.arange(block, dtype=jnp.int32) + 8 - 8 * block  # pixel centres from the block centre
+    sample_x, sample_y = sample_offsets(samples)
+    offset_x = (centre[None, :, None] + sample_x + 0 * centre[:, None, None]).reshape(-1)
+    offset_y = (centre[:, None, None] + sample_y + 0 * centre[None, :, None]).reshape(-1)
+    block_corner = 16 * block * jnp.arange(tile // block, dtype=jnp.int32) + 8 * block
+    return block, tile // block, block_corner, offset_x, offset_y
+
+
 @functools.partial(
     jax.jit,
-    static_argnames=("resolution", "tile", "tile_capacity", "pair_capacity", "chunk_batch"),
+    static_argnames=("resolution", "samples", "tile", "tile_capacity", "pair_capacity", "chunk_batch"),
 )
 def rasterize_tiled(
     setup: TriangleSetup,
     *,
     resolution: tuple[int, int],
+    samples: int,
     tile: int,
     tile_capacity: int,
     pair_capacity: int,
     chunk_batch: int,
 ) -> tuple[jax.Array, jax.Array, dict]:
-    """Resolves visibility with tiles. Returns ``(triangle_id int32 [H, W], depth float32 [H, W], counters)``.
+    """Resolves visibility with tiles at ``samples`` samples per pixel (:data:`SAMPLE_PATTERNS`).
 
-    ``triangle_id`` is -1 and ``depth`` is 1 where nothing is covered.
+    Returns ``(triangle_id int32 [H, W, S], depth float32 [H, W, S], counters)``: -1 and 1 where nothing
+    is covered.
     """
     height, width = resolution
     tiles_y, tiles_x = -(-height // tile), -(-width // tile)
@@ -125,9 +174,8 @@ def rasterize_tiled(
     total_pairs = pair_end[-1] if num_faces else jnp.int32(0)
 
     slots = jnp.arange(pair_capacity, dtype=jnp.int32)
-    chunk_slots = jnp.arange(chunk_batch, dtype=jnp.int32)
-    lane = jnp.arange(tile_capacity, dtype=jnp.int32)
-    pix = jnp.arange(tile, dtype=jnp.float32) + 0.5
+    block, blocks, _, _, _ = _sample_layout(tile, samples)
+    tile_samples = tile * tile * samples
 
     def bin_pass(state):
         base, zbuf, ids, stats = state
@@ -147,48 +195,27 @@ def rasterize_tiled(
         local = k - pair_start[owner]
         tx = tx0[owner] + local % span_x[owner]
         ty = ty0[owner] + local // span_x[owner]
-        keep = in_range & _tile_test(setup, owner, (tx * tile).astype(jnp.float32), (ty * tile).astype(jnp.float32), tile)
+        keep = in_range & _tile_test(setup, owner, (tx * tile).astype(jnp.float32), (ty * tile).astype(jnp.float32), tile, samples)
         tile_key = jnp.where(keep, ty * tiles_x + tx, num_tiles)
         tile_key, tri_sorted = jax.lax.sort((tile_key, owner), num_keys=1, is_stable=True)
 
         counts = jnp.zeros((num_tiles,), jnp.int32).at[tile_key].add(1, mode="drop")
         tile_start = jnp.cumsum(counts) - counts
-        chunks = -(-counts // tile_capacity)
-        chunk_end = jnp.cumsum(chunks)
-        chunk_start = chunk_end - chunks
-        total_chunks = chunk_end[-1]
-
-        def chunk_pass(chunk_state):
-            first, zbuf, ids = chunk_state
-            g = first + chunk_slots
-            t = jnp.minimum(jnp.searchsorted(chunk_end, g, side="right").astype(jnp.int32), num_tiles - 1)
-            j = g - chunk_start[t]
-            position = j[:, None] * tile_capacity + lane[None, :]  # [B, C]
-            live = (g < total_chunks)[:, None] & (position < counts[t][:, None])
-            cand = jnp.where(live, tri_sorted[jnp.minimum(tile_start[t][:, None] + position, pair_capacity - 1)], -1)
-            px = ((t % tiles_x) * tile).astype(jnp.float32)[:, None, None] + pix[None, None, :]
-            py = ((t // tiles_x) * tile).astype(jnp.float32)[:, None, None] + pix[None, :, None]
-            covered, depth = evaluate(setup, cand[:, :, None, None], px[:, None], py[:, None])  # [B, C, T, T]
-            depth = jnp.where(covered, depth, jnp.inf)
-            best = jnp.min(depth, axis=1)
-            winner = jnp.min(jnp.where(depth == best[:, None], cand[:, :, None, None], NO_TRIANGLE), axis=1)
-            target = jnp.where(g < total_chunks, t, num_tiles)
-            zbuf, ids = merge_depth(zbuf, ids, target, best, winner)
-            return first + chunk_batch, zbuf, ids
-
-        _, zbuf, ids = jax.lax.while_loop(lambda s: s[0] < total_chunks, chunk_pass, (jnp.int32(0), zbuf, ids))
+        zbuf, ids, total_chunks = _resolve_chunks(setup, zbuf, ids, -(-counts // tile_capacity), tile_start, counts,
+                                                  tri_sorted, tile_capacity, batch=chunk_batch, tile=tile,
+                                                  tiles_x=tiles_x, samples=samples)
         tile_counts, passes, chunks_run = stats
         stats = (tile_counts + counts, passes + 1, chunks_run + total_chunks)
         return base + pair_capacity, zbuf, ids, stats
 
-    zbuf = jnp.full((num_tiles, tile, tile), jnp.inf, jnp.float32)
-    ids = jnp.full((num_tiles, tile, tile), NO_TRIANGLE, jnp.int32)
+    zbuf = jnp.full((num_tiles, tile_samples), jnp.inf, jnp.float32)
+    ids = jnp.full((num_tiles, tile_samples), NO_TRIANGLE, jnp.int32)
     stats = (jnp.zeros((num_tiles,), jnp.int32), jnp.int32(0), jnp.int32(0))
     _, zbuf, ids, stats = jax.lax.while_loop(lambda s: s[0] < total_pairs, bin_pass, (jnp.int32(0), zbuf, ids, stats))
 
     def untile(buf):
-        buf = buf.reshape(tiles_y, tiles_x, tile, tile).transpose(0, 2, 1, 3)
-        return buf.reshape(tiles_y * tile, tiles_x * tile)[:height, :width]
+        buf = buf.reshape(tiles_y, tiles_x, blocks, blocks, block, block, samples).transpose(0, 2, 4, 1, 3, 5, 6)
+        return buf.reshape(tiles_y * tile, tiles_x * tile, samples)[:height, :width]
 
     depth = untile(zbuf)
     triangle_id = untile(ids)

@@ -62,7 +62,7 @@ register(Technique(
     options=(
         CULL,
         Option("tile", 8, integer(1), "tile edge in pixels"),
-        Option("tile_capacity", 32, integer(1), "triangles resolved per tile chunk"),
+        Option("tile_capacity", 16, integer(1), "triangles resolved per tile chunk"),
         Option("pair_capacity", None, optional(integer(1)), "(triangle, tile) pairs per binning pass; none: from F and the tile count"),
         Option("chunk_batch", None, optional(integer(1)), "tile chunks resolved per step; none: the number of tiles"),
     ),
