@@ -11,7 +11,8 @@ frame to frame, or, with ``devices``, as one batch sharded over the devices
 
 Files: image buffers (declared ``image`` by their technique, [H, W] or [H, W, C ≤ 4]) go to
 ``<name>.exr`` with the channel names of their specification; other buffers (light grids, per-light
-shadow visibility of more than 4 lights, any pytree) to ``<name>.npz``; a preview of one buffer to
+shadow visibility of more than 4 lights, multisampled buffers [H, W, S(, C)] with every sample, any
+pytree) to ``<name>.npz``; a preview of one buffer to
 ``<name>.png``, and for camera paths one file set per frame plus an animated ``<name>.gif``.
 """
 
@@ -57,8 +58,10 @@ def _split(pipeline, buffers: dict, resolution) -> tuple[dict, dict]:
             continue
         spec = pipeline.buffer_spec(name)
         array = np.asarray(value) if isinstance(value, (np.ndarray, jax.Array)) else None
+        # Multisampled buffers ([H, W, S(, C)], raster.samples > 1) keep every sample in the npz: a mean
+        # would be wrong for ids and depths, and a depth [H, W, 4] is not a 4-channel image.
         is_image = (array is not None and array.shape[:2] == tuple(resolution) and array.ndim in (2, 3)
-                    and (array.ndim == 2 or array.shape[2] <= 4) and (spec is None or spec.image))
+                    and (array.ndim == 2 or array.shape[2] <= 4) and (spec is None or (spec.image and not spec.multisampled(array))))
         (images if is_image else others)[name] = array if is_image else value
     return images, others
 

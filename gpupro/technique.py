@@ -108,6 +108,14 @@ class Buffer(typing.NamedTuple):
     image: bool = True
     optional: bool = False
 
+    def multisampled(self, value) -> bool:
+        """Whether ``value`` (any array) is this image buffer with a sample axis after the pixel axes:
+        [H, W, S] for a one-channel buffer, [H, W, S, C] for one of C channels (its rank one more than
+        its channels say; :mod:`gpupro.raster.multisample`). Always False for buffers without channels."""
+        if not self.image or not self.channels:
+            return False
+        return jnp.ndim(value) == (2 if len(self.channels) == 1 else 3) + 1
+
 
 class Option(typing.NamedTuple):
     """A static option: Python value, validated once where the pass is built."""
@@ -175,6 +183,10 @@ class Technique(typing.NamedTuple):
     acceleration that it must agree with; ``init_state(scene, **options)`` the first frame's state
     (``None`` for stateless techniques); ``example_options``: options for a small, fast frame (the
     generic tests run every technique with them, e.g. a 32² shadow map instead of 512²).
+    ``multisample``: its pass takes multisampled image inputs ([H, W, S, ...], a sample axis after the
+    pixel axes, from ``raster`` with ``samples`` > 1; :mod:`gpupro.raster.multisample`); a pass without
+    it refuses them with an error naming the pass and the ``samples`` option
+    (:meth:`gpupro.pipeline.Pass.run`).
     """
 
     id: str
@@ -193,6 +205,7 @@ class Technique(typing.NamedTuple):
     init_state: Callable[..., Any] | None = None
     example_options: Mapping[str, Any] | None = None
     notes: str = ""
+    multisample: bool = False
 
     @property
     def module(self) -> str:

@@ -77,7 +77,9 @@ class Pass:
     ``params`` is the default differentiable pytree of float arrays, or ``None``. ``technique`` is the
     registered specification the pass was made from (:func:`gpupro.pipeline.passes.make_pass`), if any.
     ``bind`` maps a buffer name in ``inputs``/``optional`` to the name ``fn`` knows it by (a fog pass's
-    ``hdr_fog`` fed to post as its ``hdr``).
+    ``hdr_fog`` fed to post as its ``hdr``). A pass made from a technique without ``multisample``
+    refuses multisampled image inputs ([H, W, S, ...], ``raster`` with ``samples`` > 1) with a
+    :class:`PipelineError` naming the pass and the option, when the frame is traced.
     """
 
     name: str
@@ -133,11 +135,32 @@ class Pass:
             raise PipelineError(f"pass {self.name!r}: fn cannot be called as fn(params, inputs, scene{state}, "
                                 f"**{dict(self.options)}): {e}") from None
 
+    def _refuse_samples(self, inputs: Mapping[str, Any]):
+        """A pass made from a technique without ``multisample`` refuses multisampled image inputs
+        ([H, W, S, ...], :meth:`gpupro.technique.Buffer.multisampled`) before its function sees them:
+        it would mistake the sample axis for pixels or channels (a wrong image or an error from deep
+        inside JAX). Shapes are static, so this runs when the frame is traced."""
+        if self.technique is None or self.technique.multisample:
+            return
+        for buffer in self.technique.inputs:
+            if buffer.name in inputs and buffer.multisampled(inputs[buffer.name]):
+                from gpupro.technique import registered  # the registry imports the techniques
+
+                shape = list(jnp.shape(inputs[buffer.name]))
+                takers = sorted(t for t, spec in registered().items() if spec.multisample)
+                named = f"pass {self.name!r}" + ("" if self.name == self.technique.id else f" ({self.technique.id})")
+                raise PipelineError(
+                    f"{named} does not take multisampled buffers: its input "
+                    f"{buffer.name!r} has shape {shape}, with a sample axis of {shape[2]} after [H, W]. Render "
+                    f"one sample per pixel (the rasterizer's samples option: pipeline.options.raster.samples = 1, "
+                    f"or make_pass('raster', samples=1)), or use passes that take multisampled input: {', '.join(takers)}")
+
     def run(self, params: Any, buffers: Mapping[str, Any], scene: Any, state: Any = None):
         """Call ``fn`` on this pass's inputs; return ``(outputs, counters, state)`` after checking the
         returned buffers against the declared ``outputs``."""
         inputs = {self.bind.get(k, k): buffers[k] for k in self.inputs}
         inputs.update({self.bind.get(k, k): buffers[k] for k in self.optional if k in buffers})
+        self._refuse_samples(inputs)
         if self.stateful:
             result = self.fn(params, inputs, scene, state, **self.options)
             if not (isinstance(result, tuple) and len(result) == 3):

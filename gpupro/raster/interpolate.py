@@ -19,7 +19,7 @@ from gpupro.numerics import einsum
 
 class Interpolated(typing.NamedTuple):
     """An interpolated attribute ``value`` [H, W, C] and its derivatives ``dx``, ``dy`` [H, W, C] per
-    pixel step right and down (zeros at empty pixels)."""
+    pixel step right and down (zeros at empty pixels); [H, W, S, C] for multisampled fragments."""
 
     value: jax.Array
     dx: jax.Array
@@ -31,14 +31,16 @@ def interpolate(attributes: jax.Array, faces: jax.Array, fragments) -> Interpola
 
     ``faces`` int32 [F, 3]: the faces the fragments' ``triangle_id`` index; ``fragments``: a
     :class:`gpupro.raster.Fragments` or anything with ``triangle_id`` int32 [H, W] (-1 where empty) and
-    ``barycentrics``, ``bary_dx``, ``bary_dy`` float32 [H, W, 3]. Differentiable in ``attributes`` and in
-    the barycentrics (so in vertex positions through them). Returns :class:`Interpolated`.
+    ``barycentrics``, ``bary_dx``, ``bary_dy`` float32 [H, W, 3]; any leading shape works alike, e.g.
+    multisampled fragments [H, W, S] and [H, W, S, 3] (each sample's triangle at the pixel centre).
+    Differentiable in ``attributes`` and in the barycentrics (so in vertex positions through them).
+    Returns :class:`Interpolated` ([..., C]: the leading shape of ``triangle_id``).
     """
     tri = fragments.triangle_id
     covered = (tri >= 0)[..., None]
-    corners = jnp.asarray(attributes)[faces[jnp.where(tri >= 0, tri, 0)]]  # [H, W, 3, C]
+    corners = jnp.asarray(attributes)[faces[jnp.where(tri >= 0, tri, 0)]]  # [H, W(, S), 3, C]
 
     def weighted(weights):
-        return jnp.where(covered, einsum("hwi,hwic->hwc", weights, corners), 0.0)
+        return jnp.where(covered, einsum("...i,...ic->...c", weights, corners), 0.0)
 
     return Interpolated(weighted(fragments.barycentrics), weighted(fragments.bary_dx), weighted(fragments.bary_dy))

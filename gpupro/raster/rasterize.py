@@ -77,8 +77,9 @@ def _check_inputs(clip, faces, resolution, where: str):
     """
     resolution = _check_resolution(resolution, where)
     clip = jnp.asarray(clip, jnp.float32)
-    # Not jnp.asarray: with 64-bit types off it would wrap int64 indices to int32 silently.
-    faces = faces if isinstance(faces, jax.core.Tracer) else np.asarray(faces)
+    # Not jnp.asarray: with 64-bit types off it would wrap int64 indices to int32 silently. JAX arrays
+    # (and tracers) stay on their device: copying them to the host would cost more than rasterizing.
+    faces = faces if isinstance(faces, jax.Array) else np.asarray(faces)
     if clip.ndim != 2 or clip.shape[1] != 4:
         raise ValueError(f"{where}: clip must have shape [V, 4], got {list(clip.shape)}")
     if faces.ndim != 2 or faces.shape[1] != 3:
@@ -86,7 +87,7 @@ def _check_inputs(clip, faces, resolution, where: str):
     if not jnp.issubdtype(faces.dtype, jnp.integer):
         raise ValueError(f"{where}: faces must be integers, got {faces.dtype}")
     if not isinstance(clip, jax.core.Tracer):
-        if not np.isfinite(np.asarray(clip)).all():
+        if not bool(jnp.all(jnp.isfinite(clip))):
             raise ValueError(f"{where}: clip positions contain NaN or infinite values")
     return clip, faces, resolution
 
@@ -94,12 +95,12 @@ def _check_inputs(clip, faces, resolution, where: str):
 def _sanitize_faces(faces, num_vertices: int) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Replaces faces with an index outside [0, V) by [0, 0, 0], which setup culls (indices not distinct).
 
-    ``faces`` [F, 3] of any integer dtype, numpy (concrete) or traced; ``num_vertices`` V is the
+    ``faces`` [F, 3] of any integer dtype, numpy, a JAX array or traced; ``num_vertices`` V is the
     caller's count, before :func:`_pad` appends zero vertices that an index == V would otherwise hit.
     The test runs in the caller's dtype, before the cast to int32. Returns ``(faces int32 [F, 3],
     valid bool [F], invalid int32 scalar)``, the same with concrete and traced inputs.
     """
-    xp = jnp if isinstance(faces, jax.core.Tracer) else np
+    xp = jnp if isinstance(faces, jax.Array) else np
     in_range = faces >= 0
     # V beyond the dtype's range (int8 faces, 300 vertices) bounds nothing, and JAX would refuse the cast.
     if num_vertices <= np.iinfo(faces.dtype).max:

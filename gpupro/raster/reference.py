@@ -29,7 +29,7 @@ def rasterize_brute_force(setup: TriangleSetup, *, resolution: tuple[int, int], 
     centre_y = 16 * jnp.arange(height, dtype=jnp.int32)[:, None] + 8  # pixel centres in 1/16 pixel
     centre_x = 16 * jnp.arange(width, dtype=jnp.int32)[None, :] + 8
     # One sample: scalar offsets, so that the last axis is the image's width (it vectorises well).
-    offset_x, offset_y = sample_offsets(samples) if samples > 1 else (0, 0)
+    offset_x, offset_y = sample_offsets(samples=samples) if samples > 1 else (0, 0)
 
     def step(carry, group):
         zbuf, ids = carry

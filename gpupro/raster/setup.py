@@ -37,15 +37,23 @@ x_w), Y = 256 h − rnd(256 y_gl) (rows down), and coverage comes from integer e
 
 evaluated exactly. Factors stay below 2^23 in magnitude, so a product needs 46 bits: each factor is
 split as f = 2^12 f_h + f_l (0 ≤ f_l < 2^12), the three partial sums of a·x + b·y (weights 2^24, 2^12,
-1) are int32 without overflow, and carrying the low ones upwards gives the exact sign
-(:func:`exact_sign`; JAX has no int64 without x64 mode). The signed area (E_0 at vertex 0) decides
-orientation and culling (0: the snapped triangle is degenerate, not drawn), and the top-left rule applies
-to the snapped edges. A shared edge of two snapped triangles has E and −E exactly, so watertightness
-holds for any vertex positions. Depth stays float: the window depth z_w = ½ Z/W + ½ is affine in the
-image, interpolated from the snapped vertices, z_w(p) = z_0 + ∂z/∂x (p_x − x_0) + ∂z/∂y (p_y − y_0),
-so it is exactly z_0 where the three vertices share a depth. Other triangles (a vertex behind the eye
-or past the guard band, where hardware clips) keep the homogeneous float test above; so does every
-triangle's perspective-correct interpolation.
+1) are int32 without overflow, and carrying the low ones upwards gives the value exactly
+(:func:`exact_quotient`; JAX has no int64 without x64 mode). That is done once per triangle and base
+point (a pixel, or the centre of a block of at most 8 × 8 pixels): samples lie on the 1/16-pixel grid, so
+with E(base) = 16 q + r (0 ≤ r < 16) a sample at base + d (1/16 pixel, |d| ≤ 64) has E = 16 (q + a d_x +
+b d_y) + r, and its test is the int32 comparison a d_x + b d_y ≥ k with one threshold k per edge and base
+(:func:`edge_thresholds`). The signed area (E_0 at vertex 0) decides orientation and culling (0: the
+snapped triangle is degenerate, not drawn), and the top-left rule applies to the snapped edges. A shared
+edge of two snapped triangles has E and −E exactly, so watertightness holds for any vertex positions.
+Multisampling evaluates the same test at D3D's standard sample positions (:data:`SAMPLE_PATTERNS`).
+Depth stays float: the window depth z_w = ½ Z/W + ½ is affine in the image, interpolated from the
+snapped vertices, z_w(p) = z_0 + ∂z/∂x (p_x − x_0) + ∂z/∂y (p_y − y_0), each product a fixed sum of four
+float32 products that are exact (:func:`_exact_products`), so that no compiler's fused multiply-adds
+change it and every rasterizer computes the same bits; it is exactly z_0 where the three vertices
+share a depth. Other triangles (a vertex behind the eye or past the guard band, where hardware clips)
+keep the homogeneous float test above (skipped when none is in view). Perspective-correct
+interpolation uses the homogeneous form with the snapped positions, w · (X/256, Y/256, 1), of snapped
+triangles (the snap entering as a constant, so gradients are those of the float positions).
 """
 
 from __future__ import annotations
@@ -109,7 +117,7 @@ SAMPLE_PATTERNS = {
 pixel centre in 1/16 pixel, y down, for 1, 2, 4 and 8 samples per pixel."""
 
 
-def sample_offsets(samples: int) -> tuple[jax.Array, jax.Array]:
+def sample_offsets(*, samples: int) -> tuple[jax.Array, jax.Array]:
     """``(offset_x, offset_y)`` int32 [S]: the offsets of :data:`SAMPLE_PATTERNS` for ``samples`` = S."""
     pattern = jnp.asarray(SAMPLE_PATTERNS[samples], jnp.int32)
     return pattern[:, 0], pattern[:, 1]

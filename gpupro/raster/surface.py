@@ -63,6 +63,10 @@ def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     ``uv`` [H, W, 2];
     ``base_color`` [H, W, 3] (material colour × texture); ``roughness``, ``metallic`` [H, W];
     ``emission`` [H, W, 3]; ``dpdx``, ``dpdy`` [H, W, 3]; ``duvdx``, ``duvdy`` [H, W, 2].
+    Any leading shape works alike: multisampled fragments (``triangle_id`` [H, W, S], the rest [H, W,
+    S, 3]) give every entry a sample axis after [H, W] (``coverage`` [H, W, S], ``position`` [H, W, S,
+    3], ...), each sample holding its triangle's surface at the pixel centre (MSAA's one shading point
+    per pixel and triangle; :mod:`gpupro.raster.multisample`).
     """
     tri = fragments.triangle_id
     covered = tri >= 0
@@ -82,13 +86,12 @@ def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     m = jnp.maximum(material, 0)
     base_color = materials.base_color[m]
     if materials.textures:
-        height, width = tri.shape
-        flat = lambda x: x.reshape(height * width, -1)
+        flat = lambda x: x.reshape(tri.size, -1)
         texture = materials.texture_index[m]
         texel = sample_trilinear(materials.textures, jnp.maximum(texture, 0).reshape(-1), flat(uv.value), flat(uv.dx), flat(uv.dy))
-        base_color = base_color * jnp.where((texture >= 0)[..., None], texel.reshape(height, width, -1), 1.0)
+        base_color = base_color * jnp.where((texture >= 0)[..., None], texel.reshape(tri.shape + (-1,)), 1.0)
 
-    zero = lambda x: jnp.where(mask if x.ndim == 3 else covered, x, 0.0)
+    zero = lambda x: jnp.where(mask if x.ndim == covered.ndim + 1 else covered, x, 0.0)
     return {
         "coverage": covered.astype(jnp.float32),
         "material_id": material,
@@ -110,7 +113,8 @@ def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
 def rasterize_scene(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> Fragments:
     """Rasterizes ``scene``'s mesh from its camera (:func:`gpupro.raster.rasterize`, at the camera's resolution).
 
-    ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (tile, capacities).
+    ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (``samples``, tile,
+    capacities), passed through: ``samples=4`` gives multisampled fragments [H, W, 4(, 3)].
     """
     camera = scene.camera
     clip = to_clip(scene.mesh.positions, camera.view_projection())

@@ -18,8 +18,10 @@ Binning is count → exclusive scan → fill with fixed capacities, and no capac
    processed ``pair_capacity`` at a time (a ``lax.while_loop``: more pairs only mean more passes);
 2. pairs that pass the tile test are sorted stably by tile, so each tile's list is in triangle order;
 3. each tile's list is cut into chunks of ``tile_capacity`` triangles; chunks are resolved
-   ``chunk_batch`` at a time against the tile's pixels (again a while loop) and merged into the
-   z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower triangle id.
+   ``chunk_batch`` at a time against the tile's samples (again a while loop; exact coverage from one
+   threshold per edge and block of at most 8 × 8 pixels, :func:`gpupro.raster.setup.evaluate`) and
+   merged into the z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower
+   triangle id.
 
 Counters report the work and every capacity exceeded (pairs and tiles past capacity, passes run).
 """
@@ -130,7 +132,7 @@ def _sample_layout(tile: int, samples: int):
     column, row, column, sample) order, which vectorises far better than small trailing axes."""
     block = max(n for n in range(1, 9) if tile % n == 0)
     centre = 16 * jnp.arange(block, dtype=jnp.int32) + 8 - 8 * block  # pixel centres from the block centre
-    sample_x, sample_y = sample_offsets(samples)
+    sample_x, sample_y = sample_offsets(samples=samples)
     offset_x = (centre[None, :, None] + sample_x + 0 * centre[:, None, None]).reshape(-1)
     offset_y = (centre[:, None, None] + sample_y + 0 * centre[None, :, None]).reshape(-1)
     block_corner = 16 * block * jnp.arange(tile // block, dtype=jnp.int32) + 8 * block

@@ -394,7 +394,8 @@ LIGHT_LOOPS = ("auto", "scan", "kernel")
 def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribution: str, light_chunk: int | None,
                         caller: str, light_loop: str = "auto"):
     """Raises ``ValueError`` naming ``caller`` and the problem for a bad distribution, light chunk or
-    shadow shape (``shadow_shape`` None or [H, W, K] with K ≤ N; ``image_shape`` (H, W))."""
+    shadow shape (``shadow_shape`` None or [H, W, K] with K ≤ N; ``image_shape`` (H, W), or (H, W, S)
+    for multisampled inputs, whose shadow is then [H, W, S, K])."""
     if distribution not in DISTRIBUTIONS:
         raise ValueError(f"{caller}: distribution must be one of {DISTRIBUTIONS}, got {distribution!r}")
     if light_chunk is not None and (not isinstance(light_chunk, int) or isinstance(light_chunk, bool) or light_chunk < 1):
@@ -404,9 +405,11 @@ def check_shading_inputs(lights: Lights, shadow_shape, image_shape, *, distribut
     if light_loop == "kernel" and (shadow_shape is not None or distribution != "ggx"):
         raise ValueError(f"{caller}: the light-loop kernel takes GGX and no shadow factors only (use 'scan' or 'auto')")
     if shadow_shape is not None:
-        if len(shadow_shape) != 3 or tuple(shadow_shape[:2]) != tuple(image_shape) or shadow_shape[2] > lights.count:
+        rank = len(image_shape) + 1
+        if len(shadow_shape) != rank or tuple(shadow_shape[:-1]) != tuple(image_shape) or shadow_shape[-1] > lights.count:
+            axes = "[H, W, K]" if rank == 3 else "[H, W, S, K]"
             raise ValueError(
-                f"{caller}: shadow must have shape [H, W, K] = [{image_shape[0]}, {image_shape[1]}, K] with "
+                f"{caller}: shadow must have shape {axes} = [{', '.join(str(n) for n in image_shape)}, K] with "
                 f"K <= {lights.count} lights, got {list(shadow_shape)}"
             )
 

@@ -336,11 +336,11 @@ def sample_lists(lll: LightLinkedList, pixel, depth, *, list_capacity: int):
     return kept, jnp.sum(valid, axis=1, dtype=jnp.int32)
 
 
-def shade_samples(samples: dict, pixel, lll: LightLinkedList, lights: Lights, camera: Camera, *, shadow=None,
+def shade_samples(surface_samples: dict, pixel, lll: LightLinkedList, lights: Lights, camera: Camera, *, shadow=None,
                   distribution: str, light_chunk: int | None, list_capacity: int):
     """Direct light at arbitrary surface samples (opaque or translucent) from the light linked list.
 
-    ``samples``: ``position``, ``normal``, ``base_color`` [P, 3] (world units, unit normals, linear RGB),
+    ``surface_samples``: ``position``, ``normal``, ``base_color`` [P, 3] (world units, unit normals, linear RGB),
     ``roughness``, ``metallic`` [P]; ``pixel`` int32 [P, 2] the (x, y) pixel each sample projects into
     (its position must lie on a ray through that pixel); ``lll`` from :func:`build_light_linked_list`;
     ``shadow`` None or [P, K]; static ``distribution``, ``light_chunk``, ``list_capacity``.
@@ -348,10 +348,10 @@ def shade_samples(samples: dict, pixel, lll: LightLinkedList, lights: Lights, ca
     the depth-bounds test of brdf · E⊥ · max(n·l, 0) · s, and per sample the links evaluated, those
     whose light truly reaches it, and the links walked.
     """
-    points = jnp.asarray(samples["position"], jnp.float32)
+    points = jnp.asarray(surface_samples["position"], jnp.float32)
     lists, walked = sample_lists(lll, jnp.asarray(pixel, jnp.int32), view_depth_of(points[None], camera)[0],
                                  list_capacity=list_capacity)
-    one = lambda key: jnp.asarray(samples[key], jnp.float32)[:, None]  # groups of one sample
+    one = lambda key: jnp.asarray(surface_samples[key], jnp.float32)[:, None]  # groups of one sample
     radiance, reached = accumulate_light_lists(
         points[:, None], one("normal"), view_directions(points, camera.eye)[:, None], one("base_color"),
         one("roughness"), one("metallic"), lights, lists,

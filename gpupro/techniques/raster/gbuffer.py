@@ -7,6 +7,13 @@ derivatives ``∂a/∂x = Σ (∂b_i/∂x) a_i`` (what mip selection and Mikkels
 mapping need), and the surface is reconstructed by :func:`gpupro.raster.surface_from_fragments`
 (normals facing the camera, materials, trilinear textures). ``view_depth`` is the distance along the
 camera's viewing axis, ``(x − e) · (t − e) / |t − e|``.
+
+Multisampled fragments (``raster`` with ``samples`` = S > 1) give a multisampled G-buffer: every buffer
+gains a sample axis after [H, W] (``coverage`` [H, W, S], ``position`` [H, W, S, 3], ...), as an MSAA
+G-buffer stores each attribute per sample. Sample s holds the surface of its own triangle evaluated at
+the pixel centre (the fragments' barycentrics), so the samples of one triangle in a pixel hold equal
+values and a shading pass can shade each pixel's triangles once (:mod:`gpupro.raster.multisample`);
+``deferred`` and ``shadow_maps`` read it, other passes refuse it.
 """
 
 from __future__ import annotations
@@ -46,7 +53,8 @@ GBUFFER_BUFFERS = ("triangle_id", "depth") + tuple(b.name for b in SURFACE)
 
 def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Materials, camera: Camera) -> dict:
     """The G-buffer dict (keys :data:`GBUFFER_BUFFERS`, images [H, W] or [H, W, C]; see the buffer table
-    of ``gpupro list gbuffer``) from rasterized ``fragments`` of ``mesh`` seen by ``camera``."""
+    of ``gpupro list gbuffer``) from rasterized ``fragments`` of ``mesh`` seen by ``camera``;
+    multisampled fragments give every entry a sample axis after [H, W] ([H, W, S] or [H, W, S, C])."""
     surface = surface_from_fragments(fragments, mesh, materials, camera.eye)
     covered = fragments.triangle_id >= 0
     forward = normalize(camera.target - camera.eye)
@@ -57,7 +65,8 @@ def gbuffer_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
 def render_gbuffer(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> tuple[dict, dict]:
     """Rasterizes ``scene`` from its camera and returns ``(gbuffer dict, rasterizer counters)``.
 
-    ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (tile, capacities).
+    ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (``samples``, tile,
+    capacities); with ``samples`` > 1 the G-buffer is multisampled ([H, W, S(, C)]).
     """
     fragments = rasterize_scene(scene, cull_backfaces=cull_backfaces, **raster_options)
     return gbuffer_from_fragments(fragments, scene.mesh, scene.materials, scene.camera), fragments.counters
@@ -69,7 +78,7 @@ def fragments_from(inputs) -> Fragments:
 
 
 def apply(params, inputs, scene):
-    """The G-buffer of the rasterizer's fragments → the surface buffers [H, W(, C)]."""
+    """The G-buffer of the rasterizer's fragments → the surface buffers [H, W(, S)(, C)]."""
     buffers = gbuffer_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera)
     return {b.name: buffers[b.name] for b in SURFACE}
 
@@ -83,4 +92,5 @@ register(Technique(
     apply=apply,
     inputs=tuple(b._replace(optional=False) for b in FRAGMENTS),
     outputs=SURFACE,
+    multisample=True,
 ))

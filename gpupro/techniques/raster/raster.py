@@ -10,16 +10,25 @@ perspective-correct barycentrics b_i with their exact screen derivatives ∂b_i/
 Capacities bound the work per step only: a tile with more than ``tile_capacity`` triangles takes
 several chunks and more than ``pair_capacity`` candidate pairs take several binning passes, so nothing
 is ever dropped and the counters say how much extra work was done.
+
+Multisampling (``samples`` = S in 1, 2, 4, 8; D3D11 functional spec sec. 3.5.6 and its standard sample
+positions, :mod:`gpupro.raster.multisample`): coverage and the depth test at S samples per pixel, so
+``triangle_id`` and ``depth`` are [H, W, S] and the barycentrics [H, W, S, 3], each sample's triangle
+interpolated at the pixel centre (MSAA shades once per pixel and triangle). The sample axis then flows
+through ``gbuffer`` into ``deferred`` or ``forward`` (and ``shadow_maps``), which shade each pixel's
+triangles and output the resolved ``hdr`` [H, W, 3]; passes that cannot take the sample axis refuse it
+with an error naming ``samples``.
 """
 
 from __future__ import annotations
 
 from gpupro.raster import rasterize_scene, reference
+from gpupro.raster.setup import SAMPLE_PATTERNS
 from gpupro.scene.camera import to_clip
-from gpupro.technique import BOOLEAN, Buffer, Capacity, Counter, Option, Technique, integer, optional, register
+from gpupro.technique import BOOLEAN, Buffer, Capacity, Counter, Option, Technique, integer, one_of, optional, register
 
 FRAGMENTS = (
-    Buffer("triangle_id", "index of the visible triangle, -1 where empty (int32)", "Y"),
+    Buffer("triangle_id", "index of the visible triangle, -1 where empty (int32; [H, W, S] with samples > 1)", "Y"),
     Buffer("depth", "window depth in [0, 1], near = 0, 1 where empty", "Z"),
     Buffer("barycentrics", "perspective-correct barycentrics of the visible triangle", "XYZ"),
     Buffer("bary_dx", "barycentrics' derivative per pixel step right", "XYZ"),
@@ -34,22 +43,26 @@ def _fragment_buffers(fragments) -> dict:
     return {name: getattr(fragments, name) for name in FRAGMENT_NAMES}
 
 
-def apply_tiled(params, inputs, scene, *, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch):
-    """Tiled rasterization of ``scene.mesh`` from ``scene.camera`` → fragment buffers [H, W(, 3)]."""
-    fragments = rasterize_scene(scene, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity,
+def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch):
+    """Tiled rasterization of ``scene.mesh`` from ``scene.camera`` → fragment buffers [H, W(, S)(, 3)]."""
+    fragments = rasterize_scene(scene, samples=samples, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity,
                                 pair_capacity=pair_capacity, chunk_batch=chunk_batch)
     return _fragment_buffers(fragments), fragments.counters
 
 
-def apply_reference(params, inputs, scene, *, cull_backfaces):
-    """Brute-force rasterization (every triangle at every pixel) → the same fragment buffers."""
+def apply_reference(params, inputs, scene, *, samples, cull_backfaces):
+    """Brute-force rasterization (every triangle at every sample) → the same fragment buffers."""
     camera = scene.camera
     clip = to_clip(scene.mesh.positions, camera.view_projection())
-    fragments = reference(clip, scene.mesh.faces, resolution=camera.resolution, cull_backfaces=cull_backfaces)
+    fragments = reference(clip, scene.mesh.faces, resolution=camera.resolution, samples=samples,
+                          cull_backfaces=cull_backfaces)
     return _fragment_buffers(fragments), fragments.counters
 
 
 CULL = Option("cull_backfaces", False, BOOLEAN, "drop triangles that are clockwise in NDC (back-facing)")
+SAMPLES = Option("samples", 1, one_of(*SAMPLE_PATTERNS),
+                 "samples per pixel (MSAA at D3D's standard positions); above 1 the fragments are [H, W, S(, 3)] "
+                 "and only deferred, forward (their hdr resolved to [H, W, 3]), gbuffer and shadow_maps take them")
 
 register(Technique(
     id="raster",
@@ -60,11 +73,12 @@ register(Technique(
     apply=apply_tiled,
     outputs=FRAGMENTS,
     options=(
+        SAMPLES,
         CULL,
         Option("tile", 8, integer(1), "tile edge in pixels"),
         Option("tile_capacity", 16, integer(1), "triangles resolved per tile chunk"),
         Option("pair_capacity", None, optional(integer(1)), "(triangle, tile) pairs per binning pass; none: from F and the tile count"),
-        Option("chunk_batch", None, optional(integer(1)), "tile chunks resolved per step; none: the number of tiles"),
+        Option("chunk_batch", None, optional(integer(1)), "tile chunks resolved per step; none: the number of tiles divided by samples"),
     ),
     capacities=(
         Capacity("tile_capacity", "tiles_overflowed", "tiles holding more triangles take several chunks", lossy=False),
@@ -89,7 +103,7 @@ register(Technique(
     status="reference",
     apply=apply_reference,
     outputs=FRAGMENTS,
-    options=(CULL,),
+    options=(SAMPLES, CULL),
     counters=(Counter("pixel_triangle_tests", "triangles × pixels tested"),
               Counter("invalid_faces", "faces skipped for a vertex index outside the mesh")),
 ))

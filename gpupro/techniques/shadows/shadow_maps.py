@@ -406,13 +406,14 @@ def _shadow_factor(maps, positions, normals, *, bias, normal_offset, pcf):
 
 
 def apply(params, inputs, scene, *, count, resolution, pcf, max_distance, bias, normal_offset, cull_backfaces):
-    """Shadow maps of the first ``count`` lights, looked up at the G-buffer's points → ``shadow`` [H, W, count]."""
+    """Shadow maps of the first ``count`` lights, looked up at the G-buffer's points → ``shadow`` [H, W, count]
+    (a multisampled G-buffer [H, W, S, 3] gives [H, W, S, count]: each sample looked up at its own point)."""
     maps = build_shadow_maps(scene.lights, scene.mesh, scene.camera, count=count, resolution=resolution,
                              max_distance=max_distance, cull_backfaces=cull_backfaces)
-    height, width = scene.camera.resolution
+    pixels = inputs["position"].shape[:-1]  # [H, W], or [H, W, S] multisampled
     points, normals = inputs["position"].reshape(-1, 3), inputs["normal"].reshape(-1, 3)
     visibility = shadow_factor(maps, points, normals, bias=bias, normal_offset=normal_offset, pcf=pcf)
-    return {"shadow": visibility.reshape(height, width, count)}, maps.counters
+    return {"shadow": visibility.reshape(pixels + (count,))}, maps.counters
 
 
 register(Technique(
@@ -423,7 +424,7 @@ register(Technique(
     status="implemented",
     apply=apply,
     inputs=tuple(b for b in SURFACE if b.name in ("position", "normal")),
-    outputs=(Buffer("shadow", "visibility in [0, 1] of each of the first `count` lights, [H, W, count]", ""),),
+    outputs=(Buffer("shadow", "visibility in [0, 1] of each of the first `count` lights, [H, W, count] ([H, W, S, count] multisampled)", ""),),
     options=(
         Option("count", 1, integer(1), "lights with shadow maps: the first `count` (order shadow casters first)"),
         Option("resolution", 512, integer(1), "texels per side of every map"),
@@ -437,4 +438,5 @@ register(Technique(
     ),
     counters=(Counter("shadow_maps_rendered", "maps drawn (6 per point light, 1 per spot or directional light)"),),
     example_options={"resolution": 32},
+    multisample=True,
 ))
