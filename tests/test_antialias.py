@@ -177,6 +177,7 @@ def test_vertex_gradients_match_finite_differences_of_the_supersampled_render():
     assert not np.any(np.asarray(plain))
 
 
+@pytest.mark.slow  # CI time; experiments/fit_pose.py's test fits a pose and field of view by these gradients
 def test_pose_and_field_of_view_gradients_of_a_closed_mesh_match_finite_differences():
     weights = smooth_weights(3)
     truth_loss = lambda p: float(np.sum(np.asarray(weights) * np.asarray(sphere_truth(p)[0]), dtype=np.float64))

@@ -18,7 +18,7 @@ from gpupro.scene.camera import look_at, perspective, to_clip
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, shade_deferred
 
 RES = (32, 32)  # a power of two: NDC ↔ window conversions of 1/256-pixel positions are exact
-MS = (2, 4, 8)
+MS = (pytest.param(2, marks=pytest.mark.slow), 4, 8)  # 2 samples under -m slow: CI time
 
 
 def random_soup(rng, count):
@@ -173,6 +173,7 @@ def textured_quad(resolution=(24, 24)):
     return sc.Scene(mesh, materials, sc.no_lights(), camera)
 
 
+@pytest.mark.slow  # CI time; runs in the GPU suite and with -m slow
 def test_multisampled_surface_is_each_samples_surface_textures_included():
     """surface_from_fragments on [H, W, S] fragments equals it on each sample's [H, W] slice (the texture
     path included), and samples of one triangle in a pixel hold equal attributes (pixel-centre shading)."""
@@ -232,6 +233,7 @@ def test_multisampled_deferred_is_per_sample_shading_resolved_and_the_one_sample
     assert float(multi["counters"]["deferred"]["lighting_computations"]) == fragments * SCENE.lights.count
 
 
+@pytest.mark.slow  # CI time; runs in the GPU suite and with -m slow
 def test_multisampled_forward_equals_deferred_with_per_sample_shadow_maps():
     """Forward shading of multisampled fragments, with shadow maps looked up at every sample ([H, W, S, K]),
     equals deferred shading of the multisampled G-buffer with those shadows."""

@@ -61,16 +61,17 @@ their capacities and gradients are the wrapped pass's, so those cases run with `
 
 
 EAGER_SLOW = {"light_linked_list", "tiled_culling", "tiled_culling_forward", "tiled_forward", "clustered_deferred",
-              "clustered_forward", "fptl", "stalker", "shadow_maps"}
+              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer"}
 """Passes whose op-by-op run compiles every primitive of long per-tile, per-cluster or per-light scan
-bodies one by one (35–90 s each on the 2-core CPU): their jit-against-eager case runs with ``-m slow``
-only. ``deferred`` and ``tiled_deferred`` keep the shared light loop's eager run in the default suite."""
+bodies one by one (35–90 s each on the 2-core CPU), and the rasterizer's passes (10 s each; the
+rasterizer's own tests compare jit and eager): their jit-against-eager case runs with ``-m slow`` only.
+``deferred`` and ``tiled_deferred`` keep the shared light loop's eager run in the default suite."""
 
 
-GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker"}
+GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred"}
 """Culling passes whose gradients flow through the shared light loop only (culling is discontinuous in
-the lights), as those of ``deferred``, ``tiled_deferred`` and ``clustered_deferred`` do in the default
-suite: their gradient cases (20–30 s each on the 2-core CPU) run with ``-m slow``."""
+the lights), as those of ``deferred`` do in the default suite: their gradient cases (17–30 s each on
+the 2-core CPU) run with ``-m slow``."""
 
 
 def _cases(cases, *, slow=frozenset()):
