@@ -106,6 +106,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpupro.raster.rasterize import padded_size
+from gpupro.raster.setup import pixel_homogeneous
+
 DEFAULT_TOLERANCE = 1.0 / 16.0
 """τ: how far (pixels) beyond a pixel centre a crossing may lie and still be blended (then clamped)."""
 DEFAULT_WALK = 4
@@ -192,24 +195,18 @@ def antialias(
     # Faces with an index outside [0, V) become [-1, -1, -1] (ignored); then vertex and face counts are
     # padded to powers of two (zero vertices, ignored faces) so that meshes of similar sizes share code.
     faces = jnp.where(jnp.all((faces >= 0) & (faces < num_vertices), axis=1)[:, None], faces, -1)
-    clip = jnp.pad(clip, ((0, _bucket(num_vertices) - num_vertices), (0, 0)))
-    faces = jnp.pad(faces, ((0, _bucket(num_faces) - num_faces), (0, 0)), constant_values=-1)
+    clip = jnp.pad(clip, ((0, padded_size(num_vertices) - num_vertices), (0, 0)))
+    faces = jnp.pad(faces, ((0, padded_size(num_faces) - num_faces), (0, 0)), constant_values=-1)
     if neighbours is not None:
-        neighbours = jnp.pad(neighbours, ((0, _bucket(num_faces) - num_faces), (0, 0), (0, 0)), constant_values=-1)
+        neighbours = jnp.pad(neighbours, ((0, padded_size(num_faces) - num_faces), (0, 0), (0, 0)), constant_values=-1)
     return _antialias(color, triangle_id, depth, clip, faces, neighbours, tolerance=tolerance, walk=walk)
-
-
-def _bucket(n: int) -> int:
-    """Padded size for n items: a power of two >= 64."""
-    return max(64, 1 << max(0, n - 1).bit_length())
 
 
 @functools.partial(jax.jit, static_argnames=("tolerance", "walk"))
 def _antialias(color, triangle_id, depth, clip, faces, neighbours, *, tolerance, walk):
     height, width = triangle_id.shape
     num_faces = faces.shape[0]
-    homogeneous = jnp.stack([(clip[:, 0] + clip[:, 3]) * (0.5 * width), (clip[:, 3] - clip[:, 1]) * (0.5 * height),
-                             clip[:, 3]], axis=-1)  # [V, 3]
+    homogeneous = pixel_homogeneous(clip, width, height)  # [V, 3]
     valid_face = jnp.all(faces >= 0, axis=1)  # out-of-range faces are [-1, -1, -1] (antialias)
     if neighbours is None:
         neighbours = _edge_neighbours(faces)
@@ -366,7 +363,7 @@ def _check_inputs(color, fragments, clip, faces):
         raise ValueError(f"antialias: clip must have shape [V, 4], got {list(clip.shape)}")
     if not (jnp.issubdtype(clip.dtype, jnp.floating) or jnp.issubdtype(clip.dtype, jnp.integer)):
         raise ValueError(f"antialias: clip must be numbers, got {clip.dtype}")
-    if not isinstance(clip, jax.core.Tracer) and not np.isfinite(np.asarray(clip)).all():
+    if not isinstance(clip, jax.core.Tracer) and not bool(jnp.all(jnp.isfinite(clip))):
         raise ValueError("antialias: clip positions contain NaN or infinite values")
     faces = _check_faces(faces, "antialias")
     return (jnp.asarray(color, jnp.float32), jnp.asarray(triangle_id).astype(jnp.int32),

@@ -110,7 +110,7 @@ def _sanitize_faces(faces, num_vertices: int) -> tuple[jax.Array, jax.Array, jax
     return jnp.asarray(safe), jnp.asarray(valid), jnp.asarray(xp.sum(~valid), jnp.int32)
 
 
-def _bucket(n: int) -> int:
+def padded_size(n: int) -> int:
     """Padded size for n items: a power of two ≥ 64, so varying counts reuse compiled code."""
     return max(64, 1 << max(0, n - 1).bit_length())
 
@@ -121,9 +121,9 @@ def _pad(clip: jax.Array, faces: jax.Array, valid: jax.Array) -> tuple[jax.Array
     ``valid`` bool [F] is padded with False, so padding faces are never counted as the caller's.
     """
     v, f = clip.shape[0], faces.shape[0]
-    clip = jnp.pad(clip, ((0, _bucket(v) - v), (0, 0)))
-    faces = jnp.pad(faces, ((0, _bucket(f) - f), (0, 0)))
-    return clip, faces, jnp.pad(valid, (0, _bucket(f) - f))
+    clip = jnp.pad(clip, ((0, padded_size(v) - v), (0, 0)))
+    faces = jnp.pad(faces, ((0, padded_size(f) - f), (0, 0)))
+    return clip, faces, jnp.pad(valid, (0, padded_size(f) - f))
 
 
 def _check_samples(samples) -> int:

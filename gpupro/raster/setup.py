@@ -129,7 +129,7 @@ def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int,
     c = clip[faces]  # [F, 3, 4]
     x, y, z, w = c[..., 0], c[..., 1], c[..., 2], c[..., 3]
     snapped, fixed, fixed_edges, fixed_owns, area_sign, plane = _snap(c, width, height)
-    v = jnp.stack([(x + w) * (0.5 * width), (w - y) * (0.5 * height), w], axis=-1)  # [F, 3, 3]
+    v = pixel_homogeneous(c, width, height)  # [F, 3, 3]
     # Snapped triangles are interpolated on their snapped positions, w · (X/256, Y/256, 1). The snap
     # has zero derivative, so it enters as a constant offset: gradients stay those of the float positions.
     snap_offset = fixed.astype(jnp.float32) / (1 << SUBPIXEL_BITS) * w[..., None] - v[..., :2]
@@ -168,6 +168,13 @@ def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int,
     edges = jnp.stack([a, b, residual], axis=-1)
     return TriangleSetup(edges, origin, owns_edge, depth_coef, visible, finite, _clipped_bbox(c, width, height),
                          snapped, fixed, fixed_edges, plane)
+
+
+def pixel_homogeneous(clip: jax.Array, width: int, height: int) -> jax.Array:
+    """Clip-space positions [..., 4] → 2D homogeneous pixel coordinates (X', Y', W) [..., 3] (module
+    docstring): X' = (X + W) width / 2, Y' = (W − Y) height / 2, rows down."""
+    x, y, w = clip[..., 0], clip[..., 1], clip[..., 3]
+    return jnp.stack([(x + w) * (0.5 * width), (w - y) * (0.5 * height), w], axis=-1)
 
 
 def _split(f):
@@ -374,6 +381,10 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     affine = at(plane, 0) + (_exact_products(at(plane, 1), sample_x - vertex[..., 0][trailing])
                              + _exact_products(at(plane, 2), sample_y - vertex[..., 1][trailing]))
 
+    visible = valid_index & setup.visible[t]
+    snapped = setup.snapped[t]
+    full = jnp.broadcast_shapes(affine.shape, visible[trailing].shape)
+
     def homogeneous():
         """Other triangles: the float edges and homogeneous depth at the samples (exact in float32)."""
         px, py = sample_x.astype(jnp.float32) / 256, sample_y.astype(jnp.float32) / 256
@@ -383,9 +394,6 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
         depth = 0.5 + (values[0] * at(coef, 0) + values[1] * at(coef, 1) + values[2] * at(coef, 2))
         return jnp.broadcast_to(inside[0] & inside[1] & inside[2], full), jnp.broadcast_to(depth, full)
 
-    visible = valid_index & setup.visible[t]
-    snapped = setup.snapped[t]
-    full = jnp.broadcast_shapes(affine.shape, visible[trailing].shape)
     # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
     # unless the caller vmaps).
     float_inside, float_depth = jax.lax.cond(

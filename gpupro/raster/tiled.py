@@ -93,17 +93,17 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     return edges_ok & (highest >= 0) & (lowest <= 1)
 
 
-def _resolve_chunks(setup, zbuf, ids, chunks, tile_start, counts, tri_sorted, tile_capacity, *, batch, tile, tiles_x,
-                    samples):
-    """Resolves the tiles' lists (``counts`` [tiles] triangles from ``tile_start`` in ``tri_sorted``) as
-    ``chunks`` [tiles] chunks of ``tile_capacity`` triangles, ``batch`` chunks a step, into the z-buffer
-    ``zbuf``, ``ids`` [tiles, T² S]. Returns ``(zbuf, ids, number of chunks)``."""
+def _resolve_chunks(setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capacity, *, batch, tile, tiles_x, samples):
+    """Resolves the tiles' lists (``counts`` [tiles] triangles from ``tile_start`` in ``tri_sorted``) in
+    chunks of ``tile_capacity`` triangles, ``batch`` chunks a step, into the z-buffer ``zbuf``, ``ids``
+    [tiles, T² S]. Returns ``(zbuf, ids, number of chunks)``."""
     num_tiles = counts.shape[0]
+    chunks = -(-counts // tile_capacity)
     chunk_end = jnp.cumsum(chunks)
     chunk_start = chunk_end - chunks
     total = chunk_end[-1]
     lane = jnp.arange(tile_capacity, dtype=jnp.int32)
-    block, blocks, block_corner, offset_x, offset_y = _sample_layout(tile, samples)
+    _, _, block_corner, offset_x, offset_y = _sample_layout(tile, samples)
 
     def chunk_pass(state):
         first, zbuf, ids = state
@@ -133,8 +133,9 @@ def _sample_layout(tile: int, samples: int):
     block = max(n for n in range(1, 9) if tile % n == 0)
     centre = 16 * jnp.arange(block, dtype=jnp.int32) + 8 - 8 * block  # pixel centres from the block centre
     sample_x, sample_y = sample_offsets(samples=samples)
-    offset_x = (centre[None, :, None] + sample_x + 0 * centre[:, None, None]).reshape(-1)
-    offset_y = (centre[:, None, None] + sample_y + 0 * centre[None, :, None]).reshape(-1)
+    shape = (block, block, samples)
+    offset_x = jnp.broadcast_to(centre[None, :, None] + sample_x, shape).reshape(-1)
+    offset_y = jnp.broadcast_to(centre[:, None, None] + sample_y, shape).reshape(-1)
     block_corner = 16 * block * jnp.arange(tile // block, dtype=jnp.int32) + 8 * block
     return block, tile // block, block_corner, offset_x, offset_y
 
@@ -203,9 +204,8 @@ def rasterize_tiled(
 
         counts = jnp.zeros((num_tiles,), jnp.int32).at[tile_key].add(1, mode="drop")
         tile_start = jnp.cumsum(counts) - counts
-        zbuf, ids, total_chunks = _resolve_chunks(setup, zbuf, ids, -(-counts // tile_capacity), tile_start, counts,
-                                                  tri_sorted, tile_capacity, batch=chunk_batch, tile=tile,
-                                                  tiles_x=tiles_x, samples=samples)
+        zbuf, ids, total_chunks = _resolve_chunks(setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capacity,
+                                                  batch=chunk_batch, tile=tile, tiles_x=tiles_x, samples=samples)
         tile_counts, passes, chunks_run = stats
         stats = (tile_counts + counts, passes + 1, chunks_run + total_chunks)
         return base + pair_capacity, zbuf, ids, stats
