@@ -91,7 +91,7 @@ def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: 
     faces = np.arange(clip.shape[0], dtype=np.int32).reshape(-1, 3)
     fn = jax.jit(lambda c, f: rasterize(c, f, resolution=(height, width), samples=samples, tile=tile,
                                         tile_capacity=tile_capacity))
-    timing = time_function(fn, jnp.asarray(clip), jnp.asarray(faces), repeats=repeats)
+    timing = time_function(fn, jnp.asarray(clip), jnp.asarray(faces), repeats=repeats, warmup=3)
     frags = timing.pop("result")
     timing["counters"] = {k: int(v) for k, v in frags.counters.items()}
     timing["peak_memory"] = peak_memory_bytes()

@@ -108,7 +108,7 @@ def _resolve_chunks(setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capac
     def chunk_pass(state):
         first, zbuf, ids = state
         g = first + jnp.arange(batch, dtype=jnp.int32)
-        t = jnp.minimum(jnp.searchsorted(chunk_end, g, side="right").astype(jnp.int32), num_tiles - 1)
+        t = jnp.minimum(jnp.searchsorted(chunk_end, g, side="right", method="scan_unrolled").astype(jnp.int32), num_tiles - 1)
         position = (g - chunk_start[t])[:, None] * tile_capacity + lane[None, :]  # [B, C]
         live = (g < total)[:, None] & (position < counts[t][:, None])
         cand = jnp.where(live, tri_sorted[jnp.minimum(tile_start[t][:, None] + position, tri_sorted.shape[0] - 1)], -1)
@@ -192,7 +192,7 @@ def rasterize_tiled(
             jnp.arange(num_faces, dtype=jnp.int32), mode="drop"
         )
         # A triangle whose pairs began in an earlier pass owns the first slots of this one.
-        carried = jnp.searchsorted(pair_end, base, side="right").astype(jnp.int32)
+        carried = jnp.searchsorted(pair_end, base, side="right", method="scan_unrolled").astype(jnp.int32)
         owner = jnp.maximum(jax.lax.cummax(marks), carried)
         owner = jnp.minimum(owner, max(num_faces - 1, 0))
         local = k - pair_start[owner]
