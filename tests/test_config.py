@@ -141,12 +141,17 @@ def test_missing_config_file_is_named(tmp_path):
         load_config(tmp_path / "nothing.toml")
 
 
-@pytest.mark.parametrize("path", sorted(CONFIGS.rglob("*.toml")), ids=lambda p: p.name)
+# Configs of experiment scripts with tables of their own (experiments/fit_lod.py's [lod_fit]) are
+# loaded by those scripts' tests.
+RUN_CONFIGS = sorted(p for p in CONFIGS.rglob("*.toml") if "\n[lod_fit]" not in p.read_text())
+
+
+@pytest.mark.parametrize("path", RUN_CONFIGS, ids=lambda p: p.name)
 def test_shipped_configs_load_and_build(path):
     config, scene, (pipeline, params) = build(path)
     assert config["name"] == path.stem
     assert scene.lights.count > 0
-    assert "hdr" in pipeline.outputs
+    assert any(b == "hdr" or b.startswith("hdr_") for b in pipeline.outputs)
 
 
 @pytest.mark.parametrize("text, expected", [

@@ -52,8 +52,9 @@ def _scenes():
 
 SCENES = _scenes()
 
-SLOW_FAMILIES = {"media"}
-"""Families whose heavy generic cases run only with ``-m slow`` (ray marches compile slowly on the CPU)."""
+SLOW_FAMILIES = {"media", "lod"}
+"""Families whose heavy generic cases run only with ``-m slow`` (ray marches and generated meshes drawn
+through the rasterizer compile slowly on the CPU; each LOD module's own tests run by default)."""
 
 TWINS = {t.id for t in TECHNIQUES.values() if any(getattr(t.apply, "__wrapped__", None) is o.apply for o in TECHNIQUES.values())}
 """Techniques whose pass wraps another's (the forward twins of :func:`gpupro.techniques.lights.forward.forward_of`):

@@ -17,6 +17,7 @@ to the generated vertices (geomorphs move them).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from gpupro.raster import antialias as antialias_edges
 from gpupro.raster import rasterize
@@ -30,7 +31,7 @@ from gpupro.techniques.raster.gbuffer import gbuffer_from_fragments
 
 def terrain_materials(base_colors) -> Materials:
     """Rough dielectric materials [M] from linear RGB ``base_colors`` [M, 3] (roughness 0.9, metallic 0)."""
-    base = jnp.atleast_2d(jnp.asarray(base_colors, jnp.float32))
+    base = np.atleast_2d(np.asarray(base_colors, np.float32))  # host-side: the count sizes the arrays
     return make_materials(base, roughness=[0.9] * base.shape[0])
 
 
