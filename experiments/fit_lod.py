@@ -88,7 +88,6 @@ import math
 import pathlib
 import sys
 import time
-import tomllib
 
 import jax
 import jax.numpy as jnp
@@ -96,8 +95,8 @@ import numpy as np
 import optax
 from PIL import Image, ImageDraw, ImageFont
 
-from gpupro.config import (ConfigError, _check, _choice, _integer, _number, _string, _table, build_pipeline,
-                           build_scene, camera_path, check_config, parse_override)
+from gpupro.config import (ConfigError, build_pipeline, build_scene, camera_path, check_config, check_table, choice_rule,
+                           integer_rule, number_rule, parse_override, read_config, string_rule, table_rule)
 from gpupro.fit import OPTIMIZERS
 from gpupro.pipeline.batch import stack_cameras
 from gpupro.technique import OptionError, default_params
@@ -106,7 +105,7 @@ SECTION = "lod_fit"
 
 
 def _lambdas(v):
-    ok = isinstance(v, list) and v and all(_number(0.0)(x)[0] for x in v)
+    ok = isinstance(v, list) and v and all(number_rule(0.0)(x)[0] for x in v)
     return ok, "a non-empty list of finite numbers >= 0"
 
 
@@ -115,19 +114,19 @@ def _thresholds(v):
 
 
 def _grid(v):
-    ok = _integer(2)(v)[0] or (isinstance(v, list) and len(v) >= 2 and all(_number()(x)[0] for x in v))
+    ok = integer_rule(2)(v)[0] or (isinstance(v, list) and len(v) >= 2 and all(number_rule()(x)[0] for x in v))
     return ok, "an integer >= 2 (points from lower to upper) or a list of at least 2 finite numbers"
 
 
-SCHEMA = {"technique": _string, "buffer": _string, "lambdas": _lambdas, "optimizer": _choice(*OPTIMIZERS),
-          "learning_rate": _number(0.0, strict_lo=True), "learning_rate_final": _number(0.0, strict_lo=True),
-          "steps": _integer(1), "fd_step": _number(0.0, strict_lo=True), "check_lambda": _number(0.0),
-          "order_gap": _number(0.0), "reference": _table, "relaxed": _table, "relaxed_final": _table,
-          "hard": _table, "thresholds": _thresholds}
+SCHEMA = {"technique": string_rule, "buffer": string_rule, "lambdas": _lambdas, "optimizer": choice_rule(*OPTIMIZERS),
+          "learning_rate": number_rule(0.0, strict_lo=True), "learning_rate_final": number_rule(0.0, strict_lo=True),
+          "steps": integer_rule(1), "fd_step": number_rule(0.0, strict_lo=True), "check_lambda": number_rule(0.0),
+          "order_gap": number_rule(0.0), "reference": table_rule, "relaxed": table_rule, "relaxed_final": table_rule,
+          "hard": table_rule, "thresholds": _thresholds}
 """Keys of ``[lod_fit]``; ``technique``, ``lambdas`` and ``thresholds`` are required. ``reference``,
 ``relaxed``, ``relaxed_final`` and ``hard`` are tables of the pass's params (checked by its spec)."""
 
-THRESHOLD_SCHEMA = {"param": _string, "lower": _number(), "upper": _number(), "start": _number(), "grid": _grid}
+THRESHOLD_SCHEMA = {"param": string_rule, "lower": number_rule(), "upper": number_rule(), "start": number_rule(), "grid": _grid}
 """Keys of each ``[[lod_fit.thresholds]]``; ``param``, ``lower`` and ``upper`` are required."""
 
 # SGD: Adam's momentum overshot the grass threshold's optimum (the error's slope falls 100× across it)
@@ -196,7 +195,7 @@ def check(raw: dict, *, source: str = "config", overrides=(), base_dir=".", vari
             section = dict(section or {}, **{keys[1]: value})
     if not isinstance(section, dict):
         raise ConfigError(f"{source}: needs a [{SECTION}] table (keys: {', '.join(SCHEMA)})")
-    _check(section, SCHEMA, SECTION + ".", source)
+    check_table(section, SCHEMA, SECTION + ".", source)
     for key in ("technique", "lambdas", "thresholds"):
         if key not in section:
             _fail(source, key, "required")
@@ -238,7 +237,7 @@ def check(raw: dict, *, source: str = "config", overrides=(), base_dir=".", vari
 
 def _threshold(entry, i, spec, current, settings, source) -> Threshold:
     where = f"thresholds[{i}]"
-    _check(entry, THRESHOLD_SCHEMA, f"{SECTION}.{where}.", source)
+    check_table(entry, THRESHOLD_SCHEMA, f"{SECTION}.{where}.", source)
     for key in ("param", "lower", "upper"):
         if key not in entry:
             _fail(source, f"{where}.{key}", "required")
@@ -269,14 +268,7 @@ def load(path, overrides=(), variant: str | None = None) -> Experiment:
     """Reads the TOML config at ``path`` and :func:`check`-s it (``overrides``: ``--set`` strings,
     ``variant``: one of its ``[variants]``)."""
     path = pathlib.Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
-    try:
-        raw = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as error:
-        raise ConfigError(f"{path}: not valid TOML: {error}") from None
-    raw.setdefault("name", path.stem)
-    return check(raw, source=str(path), overrides=overrides, base_dir=path.parent, variant=variant)
+    return check(read_config(path), source=str(path), overrides=overrides, base_dir=path.parent, variant=variant)
 
 
 # ----------------------------------------------------------------------------------------------------------

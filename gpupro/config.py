@@ -90,7 +90,8 @@ def _vector(n):
     return check
 
 
-def _number(lo=-math.inf, hi=math.inf, *, strict_lo=False):
+def number_rule(lo=-math.inf, hi=math.inf, *, strict_lo=False):
+    """A :func:`check_table` rule: a finite float32 number in [lo, hi] (lo excluded with ``strict_lo``)."""
     def check(v):
         # a strict bound holds for the float32 value: near = 1e-46 would become 0
         ok = _is_real(v) and (float(np.float32(v)) > lo if strict_lo else v >= lo) and v <= hi
@@ -99,7 +100,8 @@ def _number(lo=-math.inf, hi=math.inf, *, strict_lo=False):
     return check
 
 
-def _integer(lo=0, hi=None, why=""):
+def integer_rule(lo=0, hi=None, why=""):
+    """A :func:`check_table` rule: an integer >= lo (and <= hi, for the reason ``why``)."""
     def check(v):
         if not (isinstance(v, int) and not isinstance(v, bool)):
             return False, f"an integer >= {lo}"
@@ -109,7 +111,8 @@ def _integer(lo=0, hi=None, why=""):
     return check
 
 
-def _choice(*options):
+def choice_rule(*options):
+    """A :func:`check_table` rule: one of ``options``."""
     return lambda v: (v in options, f"one of {list(options)}")
 
 
@@ -136,12 +139,13 @@ def describe_size(size) -> str:
     return f"{width}x{height}"
 
 
-def _string(v):
+def string_rule(v):
+    """A :func:`check_table` rule: a non-empty string."""
     return isinstance(v, str) and v != "", "a non-empty string"
 
 
 def _file_stem(v):
-    ok = _string(v)[0] and not any(c in v for c in "/\\") and v not in (".", "..")
+    ok = string_rule(v)[0] and not any(c in v for c in "/\\") and v not in (".", "..")
     return ok, "a non-empty file name without '/' or '\\' (output files are named after it)"
 
 
@@ -149,7 +153,8 @@ def _boolean(v):
     return isinstance(v, bool), "true or false"
 
 
-def _table(v):
+def table_rule(v):
+    """A :func:`check_table` rule: a table (dict)."""
     return isinstance(v, dict), "a table"
 
 
@@ -166,9 +171,9 @@ def _light_list(v):
     return isinstance(v, list) and all(isinstance(x, dict) for x in v), "a list of tables"
 
 
-_LIGHT = {"position": _vector(3), "direction": _vector(3), "color": _vector(3), "intensity": _number(0.0),
-          "range": _number(0.0, strict_lo=True), "inner_angle_degrees": _number(0.0, 90.0),
-          "outer_angle_degrees": _number(0.0, 90.0), "length": _number(0.0)}
+_LIGHT = {"position": _vector(3), "direction": _vector(3), "color": _vector(3), "intensity": number_rule(0.0),
+          "range": number_rule(0.0, strict_lo=True), "inner_angle_degrees": number_rule(0.0, 90.0),
+          "outer_angle_degrees": number_rule(0.0, 90.0), "length": number_rule(0.0)}
 LIGHT_KEYS = {
     "point": {k: _LIGHT[k] for k in ("position", "color", "intensity", "range")},
     "spot": {k: _LIGHT[k] for k in _LIGHT if k != "length"},
@@ -187,31 +192,34 @@ GENERATOR_KEYS = {"uniform_in_box": {"count", "range", "intensity", "seed", "whi
 
 SCHEMA: dict[str, Any] = {
     "name": _file_stem,
-    "description": _string,
-    "frames": _integer(1, MAX_FRAMES, "each frame's camera is made up front"),
-    "repeats": _integer(1),
-    "scene": {"name": _choice(*SCENES), "file": _string, "options": _table},
-    "camera": {"eye": _vector(3), "target": _vector(3), "up": _vector(3), "fov_y_degrees": _number(0.0, 179.0, strict_lo=True),
-               "near": _number(0.0, strict_lo=True), "far": _number(0.0, strict_lo=True), "resolution": _resolution,
-               "projection": _choice(*PROJECTIONS), "ortho_height": _number(0.0, strict_lo=True),
+    "description": string_rule,
+    "frames": integer_rule(1, MAX_FRAMES, "each frame's camera is made up front"),
+    "repeats": integer_rule(1),
+    "scene": {"name": choice_rule(*SCENES), "file": string_rule, "options": table_rule},
+    "camera": {"eye": _vector(3), "target": _vector(3), "up": _vector(3), "fov_y_degrees": number_rule(0.0, 179.0, strict_lo=True),
+               "near": number_rule(0.0, strict_lo=True), "far": number_rule(0.0, strict_lo=True), "resolution": _resolution,
+               "projection": choice_rule(*PROJECTIONS), "ortho_height": number_rule(0.0, strict_lo=True),
                "path": {"eye_end": _vector(3), "target_end": _vector(3)}},
-    "lights": {"generator": _choice("scene", "none", "uniform_in_box", "along_path"),
-               "count": _integer(0, MAX_LIGHTS, "larger light lists exhaust memory"),
-               "range": _number(0.0, strict_lo=True), "intensity": _number(0.0),
-               "seed": _integer(0, MAX_SEED, "jax.random.PRNGKey keeps 32 bits"), "white": _boolean,
+    "lights": {"generator": choice_rule("scene", "none", "uniform_in_box", "along_path"),
+               "count": integer_rule(0, MAX_LIGHTS, "larger light lists exhaust memory"),
+               "range": number_rule(0.0, strict_lo=True), "intensity": number_rule(0.0),
+               "seed": integer_rule(0, MAX_SEED, "jax.random.PRNGKey keeps 32 bits"), "white": _boolean,
                "keep_scene_lights": _boolean, "box_lo": _vector(3), "box_hi": _vector(3), "path": _points,
-               "offset": _number(0.0), "spot_fraction": _number(0.0, 1.0), "point": _light_list, "spot": _light_list, "directional": _light_list,
+               "offset": number_rule(0.0), "spot_fraction": number_rule(0.0, 1.0), "point": _light_list, "spot": _light_list, "directional": _light_list,
                "capsule": _light_list},
-    "pipeline": {"passes": _strings, "options": _table, "params": _table, "inputs": _table},
-    "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean, "preview": _string},
-    "fit": _table,
+    "pipeline": {"passes": _strings, "options": table_rule, "params": table_rule, "inputs": table_rule},
+    "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean, "preview": string_rule},
+    "fit": table_rule,
 }
 """Allowed keys: nested dicts are tables, functions check a value and say what they expected."""
 
 DEFAULT_PASSES = ["raster", "gbuffer", "deferred", "post"]
 
 
-def _check(table: dict, schema: dict, prefix: str, source: str):
+def check_table(table: dict, schema: dict, prefix: str, source: str):
+    """Checks ``table`` against ``schema`` (a dict of nested schemas and rules: functions of a value
+    returning ``(ok, what was expected)``); :class:`ConfigError` names ``source`` and the key path
+    ``prefix + key`` of the first unknown key or refused value."""
     if not isinstance(table, dict):
         raise ConfigError(f"{source}: {prefix.rstrip('.') or 'config'}: expected a table")
     for key, value in table.items():
@@ -220,7 +228,7 @@ def _check(table: dict, schema: dict, prefix: str, source: str):
             raise ConfigError(f"{source}: unknown key '{path}' (allowed here: {', '.join(sorted(schema))})")
         rule = schema[key]
         if isinstance(rule, dict):
-            _check(value, rule, path + ".", source)
+            check_table(value, rule, path + ".", source)
         else:
             ok, expected = rule(value)
             if not ok:
@@ -242,8 +250,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return keys, value
 
 
-def load_config(path: str | pathlib.Path, overrides: tuple[str, ...] | list[str] = ()) -> dict:
-    """Reads, overrides and checks a TOML config. Returns the config dict with ``_source`` (file name)."""
+def read_config(path: str | pathlib.Path) -> dict:
+    """The TOML config at ``path`` as a dict, unchecked, its ``name`` defaulting to the file's stem;
+    :class:`ConfigError` if the file is missing or not valid TOML."""
     path = pathlib.Path(path)
     if not path.is_file():
         raise ConfigError(f"config file not found: {path}")
@@ -252,6 +261,13 @@ def load_config(path: str | pathlib.Path, overrides: tuple[str, ...] | list[str]
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"{path}: not valid TOML: {error}") from None
     config.setdefault("name", path.stem)
+    return config
+
+
+def load_config(path: str | pathlib.Path, overrides: tuple[str, ...] | list[str] = ()) -> dict:
+    """Reads, overrides and checks a TOML config. Returns the config dict with ``_source`` (file name)."""
+    path = pathlib.Path(path)
+    config = read_config(path)
     return check_config(config, source=str(path), overrides=overrides, base_dir=path.parent)
 
 
@@ -320,7 +336,7 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
         return _check_overridden(config, overrides, source, base_dir)
     config = copy.deepcopy(config)
     config.setdefault("name", "experiment")
-    _check(config, SCHEMA, "", source)
+    check_table(config, SCHEMA, "", source)
     if isinstance(config.get("camera", {}).get("resolution"), str):
         config["camera"]["resolution"] = _parse_size(config["camera"]["resolution"])
     scene = config.get("scene", {})
@@ -347,7 +363,7 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
                 raise ConfigError(f"{source}: pipeline.{section}.{name}: expected a table")
     for kind in LIGHT_KEYS:
         for i, light in enumerate(config.get("lights", {}).get(kind, [])):
-            _check(light, LIGHT_KEYS[kind], f"lights.{kind}[{i}].", source)
+            check_table(light, LIGHT_KEYS[kind], f"lights.{kind}[{i}].", source)
     _check_generator_keys(config.get("lights", {}), source)
     config["_source"] = source
     return config

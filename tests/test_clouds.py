@@ -353,7 +353,7 @@ def _binned_renderer(blending, binning):
     return render
 
 
-@pytest.mark.parametrize("blending", ["alpha", "volume_aware"])
+@pytest.mark.parametrize("blending", ["alpha", pytest.param("volume_aware", marks=pytest.mark.slow)])  # 22 s each on the CPU
 def test_binned_rendering_equals_every_pixel_meeting_every_particle(blending):
     (*binned, counts), per_tile = _binned_renderer(blending, "tiles")()
     (*plain, plain_counts), _ = _binned_renderer(blending, "none")()

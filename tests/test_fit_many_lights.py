@@ -5,6 +5,7 @@ import io
 import pathlib
 
 import numpy as np
+import pytest
 
 from gpupro.fit import fit_experiment
 
@@ -12,6 +13,7 @@ CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs" / "many_lig
 SHORT = ("camera.resolution='48x27'", "fit.steps=30")
 
 
+@pytest.mark.slow  # 44 s on the 2-core CPU; gpupro.fit itself is checked by tests/test_fit.py
 def test_sixteen_light_intensities_fit_through_clustered_shading_as_through_brute_force(tmp_path):
     results = {name: fit_experiment(CONFIGS / f"fit_{name}.toml", out_dir=tmp_path / name, overrides=SHORT,
                                     progress=io.StringIO())

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import gpupro as gp
 from gpupro.lod import draw_generated, fbm_height, height_normals, terrain_materials
@@ -58,6 +59,7 @@ def test_generated_surface_shows_only_where_nearer_than_the_frame():
     np.testing.assert_allclose(above["hdr"][0, 0], [0.2, 0.0, 0.0])  # the background where nothing is
 
 
+@pytest.mark.slow  # 25 s on the 2-core CPU; tests/test_antialias.py checks these gradients on its own meshes
 def test_antialias_gives_gradients_at_silhouettes():
     """Under ambient light the square's radiance is constant, so only its silhouette moves with its size:
     the hard-edged image has no gradient, the antialiased one the sign and size of a finite difference."""

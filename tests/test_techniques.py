@@ -13,7 +13,8 @@
 The heavier of these (gradients, jit against eager, reference, capacities) are marked ``slow`` for the
 families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget, the capacity and gradient
 cases of the :data:`TWINS`, the eager runs of :data:`EAGER_SLOW`, the gradient cases of
-:data:`GRADIENT_SLOW` and the :data:`FURTHER_CAPACITIES`; ``pytest -m slow
+:data:`GRADIENT_SLOW`, the :data:`FURTHER_CAPACITIES`, the :data:`OWN_CAPACITY_TESTS` and the
+:data:`REFERENCE_SLOW` cases; ``pytest -m slow
 tests/test_techniques.py`` runs them (the GPU machine's whole-suite run includes them).
 """
 
@@ -62,11 +63,12 @@ their capacities and gradients are the wrapped pass's, so those cases run with `
 
 
 EAGER_SLOW = {"light_linked_list", "tiled_culling", "tiled_culling_forward", "tiled_forward", "clustered_deferred",
-              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer"}
+              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer", "tiled_deferred"}
 """Passes whose op-by-op run compiles every primitive of long per-tile, per-cluster or per-light scan
 bodies one by one (35–90 s each on the 2-core CPU), and the rasterizer's passes (10 s each; the
 rasterizer's own tests compare jit and eager): their jit-against-eager case runs with ``-m slow`` only.
-``deferred`` and ``tiled_deferred`` keep the shared light loop's eager run in the default suite."""
+``deferred`` keeps the shared light loop's eager run in the default suite (``tiled_deferred``'s, 18 s,
+runs the same loop)."""
 
 
 GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred"}
@@ -223,9 +225,13 @@ def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id
 
 
 WITH_REFERENCE = [(t.id, scene) for t in TECHNIQUES.values() if t.reference for scene in SCENES]
+REFERENCE_SLOW = {(t, scene) for t, scene in WITH_REFERENCE if TECHNIQUES[t].family == "lights" and scene == "sphere"}
+"""The many-light techniques' sphere-scene case (7–11 s each on the 2-core CPU) runs with ``-m slow``: their
+cornell cases run by default, and each technique's own tests compare it with brute force on a scene with
+empty pixels and spot lights."""
 
 
-@pytest.mark.parametrize("technique_id, scene", _cases(WITH_REFERENCE), ids=[f"{t}-{s}" for t, s in WITH_REFERENCE])
+@pytest.mark.parametrize("technique_id, scene", _cases(WITH_REFERENCE, slow=REFERENCE_SLOW), ids=[f"{t}-{s}" for t, s in WITH_REFERENCE])
 def test_technique_equals_its_reference(technique_id, scene):
     reference = TECHNIQUES[technique_id].reference
     shared = [b.name for b in TECHNIQUES[technique_id].outputs if b.name in {o.name for o in TECHNIQUES[reference].outputs}]
@@ -238,9 +244,12 @@ CAPACITIES = [(t.id, c) for t in TECHNIQUES.values() for c in t.capacities]
 FURTHER_CAPACITIES = {(t.id, c) for t in TECHNIQUES.values() for c in t.capacities[1:]}
 """A technique's capacities after its first: their growth goes through the same entry points as the
 first's, so the default suite grows one capacity per technique and ``-m slow`` the rest."""
+OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred"}
+"""Techniques whose own test files grow their first capacity through ``render`` against brute force
+(tests/test_fptl.py, tests/test_tiled_shading.py): their generic case (16–17 s each) runs with ``-m slow``."""
 
 
-@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
+@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES | OWN_CAPACITY_TESTS), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]

@@ -16,15 +16,18 @@ to the generated vertices (geomorphs move them).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpupro.numerics import dot3
 from gpupro.raster import antialias as antialias_edges
 from gpupro.raster import rasterize
 from gpupro.scene.camera import to_clip
 from gpupro.scene.materials import Materials, make_materials
 from gpupro.scene.mesh import Mesh
 from gpupro.scene.scene import Scene
+from gpupro.technique import Buffer
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.raster.gbuffer import gbuffer_from_fragments
 
@@ -78,3 +81,51 @@ def draw_generated(mesh: Mesh, materials: Materials, scene: Scene, *, ambient=(0
     counters = dict(triangles_drawn=jnp.int32(mesh.num_faces), tile_chunks=fragments.counters["tile_chunks"],
                     binning_passes=fragments.counters["binning_passes"])
     return buffers, counters
+
+
+def frame_buffers(technique_id: str, surface: str, empty: str) -> tuple[tuple[Buffer, ...], tuple[Buffer, ...]]:
+    """The buffers of a technique that draws a generated ``surface`` (e.g. "terrain") over the scene's
+    frame: ``(inputs, outputs)``, the optional ``hdr``/``depth`` inputs and the ``hdr_<id>``,
+    ``depth_<id>`` and ``coverage_<id>`` outputs of :func:`frame_outputs`; ``empty`` names what shows
+    where neither is (e.g. "the sky")."""
+    inputs = (Buffer("hdr", f"linear radiance of the scene's frame, drawn under the {surface}", "RGB", optional=True),
+              Buffer("depth", "window depth of the scene's frame, 1 where empty", "Z", optional=True))
+    outputs = (Buffer(f"hdr_{technique_id}", f"linear radiance: the {surface} over the earlier frame (or {empty})", "RGB"),
+               Buffer(f"depth_{technique_id}", f"window depth of the nearer of the {surface} and the earlier frame", "Z"),
+               Buffer(f"coverage_{technique_id}", f"1 where the {surface} shows, 0 elsewhere", "Y"))
+    return inputs, outputs
+
+
+def frame_outputs(technique_id: str, drawn: dict) -> dict:
+    """The ``hdr``, ``depth`` and ``coverage`` of :func:`draw_generated`'s buffers under the output names
+    of :func:`frame_buffers`."""
+    return {f"{name}_{technique_id}": drawn[name] for name in ("hdr", "depth", "coverage")}
+
+
+def continuous_surface(mesh: Mesh, triangle_id, origins, directions) -> tuple[jax.Array, ...]:
+    """Where the pixel rays ``origins`` + t ``directions`` [H, W, 3] meet the float triangles ``triangle_id``
+    int32 [H, W] of ``mesh``: ``(position [H, W, 3], normal [H, W, 3], facing [H, W, 3], ok bool [H, W])``,
+    the normal interpolated with the hit's barycentrics (unnormalised), ``facing`` the triangle's normal
+    turned towards the ray's origin (unnormalised); ``ok`` is false on empty pixels, zero-area triangles and
+    edge-on hits, where the values are finite but meaningless.
+
+    The rasterizer's barycentrics are those of the vertices snapped to 1/256 pixel, so its G-buffer moves
+    in steps as geomorphs move the vertices, and the steps swamp the finite differences of a small morph;
+    the ray–triangle hit is continuous in the vertices."""
+    face = mesh.faces[jnp.maximum(triangle_id, 0)]  # [H, W, 3]
+    a, b, c = (mesh.positions[face[..., k]] for k in range(3))
+    e1, e2 = b - a, c - a
+    cross = jnp.cross(e1, e2)
+    area2 = dot3(cross, cross)
+    facing = dot3(directions, cross)
+    ok = (triangle_id >= 0) & (area2 > 1e-12 * dot3(e1, e1) * dot3(e2, e2)) & (jnp.abs(facing) > 1e-6 * jnp.sqrt(area2))
+    t = dot3(a - origins, cross) / jnp.where(ok, facing, 1.0)
+    position = origins + t[..., None] * directions
+    q = position - a
+    area2 = jnp.where(ok, area2, 1.0)
+    w1 = dot3(jnp.cross(q, e2), cross) / area2
+    w2 = dot3(jnp.cross(e1, q), cross) / area2
+    normal = (1.0 - w1 - w2)[..., None] * mesh.normals[face[..., 0]] + w1[..., None] * mesh.normals[face[..., 1]] \
+        + w2[..., None] * mesh.normals[face[..., 2]]
+    facing = jnp.where((facing > 0)[..., None], -cross, cross)
+    return position, normal, facing, ok

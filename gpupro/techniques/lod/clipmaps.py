@@ -103,7 +103,7 @@ vanish on the coarse grid); residuals come from the procedural terrain, not from
 Gaussian-noise synthesis; normal maps are recomputed each frame at the geometry's resolution (not 2×);
 h_v comes from the height function (no readback); shading is the project's deferred shading of the
 scene's lights (no elevation-based colour texture; ``level_colors`` colours the rings as Figure 2-2), at
-the point where each pixel's ray meets the float triangle (:func:`continuous_surface`): the rasterizer's
+the point where each pixel's ray meets the float triangle (:func:`gpupro.lod.continuous_surface`): the rasterizer's
 barycentrics belong to vertices snapped to 1/256 pixel, whose steps would swamp the small, smooth
 image changes a geomorph makes (and their finite differences). Back faces are culled (the terrain is seen
 from above; a viewer below it sees nothing): without culling, a pixel centre within snapping distance of
@@ -118,7 +118,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import draw_generated, fbm_height, height_normals
+from gpupro.lod import continuous_surface, draw_generated, fbm_height, frame_buffers, frame_outputs, height_normals
 from gpupro.media.rays import pixel_rays
 from gpupro.numerics import dot3
 from gpupro.raster.surface import bend_towards_viewer, normalize
@@ -456,38 +456,9 @@ def clipmap_mesh(params, heights, origins, eye, active, *, clip_levels, grid_siz
     return mesh, face_levels, counters
 
 
-def continuous_surface(mesh: Mesh, triangle_id, origins, directions) -> tuple[jax.Array, ...]:
-    """Where the pixel rays ``origins`` + t ``directions`` [H, W, 3] meet the float triangles ``triangle_id``
-    int32 [H, W] of ``mesh``: ``(position [H, W, 3], normal [H, W, 3], facing [H, W, 3], ok bool [H, W])``,
-    the normal interpolated with the hit's barycentrics (unnormalised), ``facing`` the triangle's normal
-    turned towards the ray's origin (unnormalised); ``ok`` is false on empty pixels, zero-area triangles and
-    edge-on hits, where the values are finite but meaningless.
-
-    The rasterizer's barycentrics are those of the vertices snapped to 1/256 pixel, so its G-buffer moves
-    in steps as geomorphs move the vertices, and the steps swamp the finite differences of a small morph;
-    the ray–triangle hit is continuous in the vertices."""
-    face = mesh.faces[jnp.maximum(triangle_id, 0)]  # [H, W, 3]
-    a, b, c = (mesh.positions[face[..., k]] for k in range(3))
-    e1, e2 = b - a, c - a
-    cross = jnp.cross(e1, e2)
-    area2 = dot3(cross, cross)
-    facing = dot3(directions, cross)
-    ok = (triangle_id >= 0) & (area2 > 1e-12 * dot3(e1, e1) * dot3(e2, e2)) & (jnp.abs(facing) > 1e-6 * jnp.sqrt(area2))
-    t = dot3(a - origins, cross) / jnp.where(ok, facing, 1.0)
-    position = origins + t[..., None] * directions
-    q = position - a
-    area2 = jnp.where(ok, area2, 1.0)
-    w1 = dot3(jnp.cross(q, e2), cross) / area2
-    w2 = dot3(jnp.cross(e1, q), cross) / area2
-    normal = (1.0 - w1 - w2)[..., None] * mesh.normals[face[..., 0]] + w1[..., None] * mesh.normals[face[..., 1]] \
-        + w2[..., None] * mesh.normals[face[..., 2]]
-    facing = jnp.where((facing > 0)[..., None], -cross, cross)
-    return position, normal, facing, ok
-
-
 def _shading(mesh: Mesh, scene, ambient):
     """The ``shade`` callback of :func:`gpupro.lod.draw_generated`: deferred shading of the scene's lights
-    at the continuous surface points of :func:`continuous_surface` (the G-buffer's where those fail)."""
+    at the continuous surface points of :func:`gpupro.lod.continuous_surface` (the G-buffer's where those fail)."""
     origins, directions, _ = pixel_rays(scene.camera)
     eye = scene.camera.eye
 
@@ -545,8 +516,7 @@ def apply(params, inputs, scene, state, *, clip_levels, grid_size, base_spacing,
                               shade=_shading(mesh, scene, params["ambient"]))
     tri = drawn["triangle_id"]
     level = jnp.where(tri >= 0, face_levels[jnp.maximum(tri, 0)], -1).astype(jnp.float32)
-    outputs = {"hdr_clipmaps": drawn["hdr"], "depth_clipmaps": drawn["depth"], "coverage_clipmaps": drawn["coverage"],
-               "level_clipmaps": level}
+    outputs = {**frame_outputs("clipmaps", drawn), "level_clipmaps": level}
     return outputs, {**counters, "samples_updated": written, "levels_rebuilt": rebuilt}, state
 
 
@@ -570,6 +540,8 @@ def lod_cost(params, scene, **options) -> jax.Array:
     return (jnp.sum(1.0 - beta) * per_level - t["degenerate"] - t["trim"] + t["fill"]).astype(jnp.float32)
 
 
+_FRAME_INPUTS, _FRAME_OUTPUTS = frame_buffers("clipmaps", "terrain", "the background")
+
 TECHNIQUE = register(Technique(
     id="clipmaps",
     title="GPU-based geometry clipmaps: nested toroidal grids, four-point upsampling, transition morphs",
@@ -577,12 +549,9 @@ TECHNIQUE = register(Technique(
     family="lod",
     status="implemented",
     apply=apply,
-    inputs=(Buffer("hdr", "linear radiance of the scene's frame, drawn under the terrain", "RGB", optional=True),
-            Buffer("depth", "window depth of the scene's frame, 1 where empty", "Z", optional=True)),
-    outputs=(Buffer("hdr_clipmaps", "linear radiance: the clipmap terrain over the earlier frame (or the background)", "RGB"),
-             Buffer("depth_clipmaps", "window depth of the nearer of the terrain and the earlier frame", "Z"),
-             Buffer("coverage_clipmaps", "1 where the terrain shows, 0 elsewhere", "Y"),
-             Buffer("level_clipmaps", "clipmap level l of the visible terrain triangle (0 finest), -1 elsewhere", "Y")),
+    inputs=_FRAME_INPUTS,
+    outputs=_FRAME_OUTPUTS + (
+             Buffer("level_clipmaps", "clipmap level l of the visible terrain triangle (0 finest), -1 elsewhere", "Y"),),
     options=(
         Option("clip_levels", 11, integer(1, 24), "clipmap levels L (the chapter's 11)"),
         Option("grid_size", 255, GRID_SIZE, "samples n per side of each level (2^k − 1; the chapter's 255)"),

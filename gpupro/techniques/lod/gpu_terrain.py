@@ -125,9 +125,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import draw_generated, fbm_height
+from gpupro.lod import continuous_surface, draw_generated, fbm_height, frame_buffers, frame_outputs
 from gpupro.media.rays import pixel_rays
-from gpupro.numerics import dot3
 from gpupro.raster.surface import bend_towards_viewer, normalize
 from gpupro.scene.camera import to_clip
 from gpupro.scene.materials import make_materials
@@ -371,29 +370,14 @@ def side_visibility(mesh: TerrainMesh, view_projection, height_range, *, level_s
 
 def _ray_hit_shading(mesh: Mesh, scene, ambient):
     """The ``shade`` callback of :func:`gpupro.lod.draw_generated`: deferred shading at the point where
-    each pixel's ray meets its visible triangle with the float vertices, the normal interpolated there.
-
-    The rasterizer's barycentrics are those of vertices snapped to 1/256 pixel, so the G-buffer moves in
-    steps as the geomorph moves vertices by fractions of that, and the steps swamp the morph's finite
-    differences; the ray–triangle hit is continuous in the vertices. Pixels whose hit fails (empty,
-    degenerate or edge-on) keep the G-buffer's values."""
+    each pixel's ray meets its visible triangle with the float vertices, the normal interpolated there
+    (:func:`gpupro.lod.continuous_surface`: continuous in the geomorphing vertices, unlike the G-buffer).
+    Pixels whose hit fails (empty, degenerate or edge-on) keep the G-buffer's values."""
     origins, directions, _ = pixel_rays(scene.camera)
     eye = scene.camera.eye
 
     def shade(gbuffer):
-        triangle = gbuffer["triangle_id"]
-        face = mesh.faces[jnp.maximum(triangle, 0)]  # [H, W, 3]
-        a, b, c = (mesh.positions[face[..., k]] for k in range(3))
-        e1, e2 = b - a, c - a
-        cross = jnp.cross(e1, e2)
-        area2 = dot3(cross, cross)
-        facing = dot3(directions, cross)
-        ok = (triangle >= 0) & (area2 > 1e-12 * dot3(e1, e1) * dot3(e2, e2)) & (jnp.abs(facing) > 1e-6 * jnp.sqrt(area2))
-        hit = origins + (dot3(a - origins, cross) / jnp.where(ok, facing, 1.0))[..., None] * directions
-        q, area2 = hit - a, jnp.where(ok, area2, 1.0)
-        w1 = dot3(jnp.cross(q, e2), cross) / area2
-        w2 = dot3(jnp.cross(e1, q), cross) / area2
-        normal = sum(w[..., None] * mesh.normals[face[..., k]] for k, w in enumerate((1.0 - w1 - w2, w1, w2)))
+        hit, normal, _, ok = continuous_surface(mesh, gbuffer["triangle_id"], origins, directions)
         ok3 = ok[..., None]
         # A finite stand-in where the hit fails: a zero vector's norm has no derivative, even where discarded.
         normal = normalize(jnp.where(ok3, normal, gbuffer["normal"]))
@@ -708,8 +692,7 @@ def apply(params, inputs, scene, state, *, quad_resolution, level_size, level_co
         "window_needed": windows["window_needed"].astype(jnp.int32),
         "terrain_volume": (jnp.sum(heights) * map_spacing**2).astype(jnp.float32),
     }
-    outputs = {"hdr_gpu_terrain": buffers["hdr"], "depth_gpu_terrain": buffers["depth"],
-               "coverage_gpu_terrain": buffers["coverage"], "level_gpu_terrain": level_image,
+    outputs = {**frame_outputs("gpu_terrain", buffers), "level_gpu_terrain": level_image,
                "height_map_gpu_terrain": heights}
     return outputs, counters, state
 
@@ -740,6 +723,8 @@ def lod_cost(params, scene, *, state=None, **options):
     return jnp.sum(jnp.where(drawn, 1.0 - 0.75 * alpha, 0.0)).astype(jnp.float32)
 
 
+_FRAME_INPUTS, _FRAME_OUTPUTS = frame_buffers("gpu_terrain", "terrain", "the background")
+
 TECHNIQUE = register(Technique(
     id="gpu_terrain",
     title="Dynamic GPU terrain (snapped ring mesh in five meshes, geomorphing, plough/wheel/erosion on a height map)",
@@ -747,11 +732,8 @@ TECHNIQUE = register(Technique(
     family="lod",
     status="partial",
     apply=apply,
-    inputs=(Buffer("hdr", "the frame to draw the terrain over (linear radiance)", "RGB", optional=True),
-            Buffer("depth", "window depth of that frame, 1 where empty", "Z", optional=True)),
-    outputs=(Buffer("hdr_gpu_terrain", "linear radiance of the terrain over the input frame", "RGB"),
-             Buffer("depth_gpu_terrain", "window depth of the nearer surface, 1 where empty", "Z"),
-             Buffer("coverage_gpu_terrain", "1 where the terrain shows, 0 elsewhere", "Y"),
+    inputs=_FRAME_INPUTS,
+    outputs=_FRAME_OUTPUTS + (
              Buffer("level_gpu_terrain", "level index of the visible terrain triangle, -1 where none", "Y"),
              Buffer("height_map_gpu_terrain", "the modified height map [N, N] (world units; rows along z)", image=False)),
     options=(

@@ -100,7 +100,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import draw_generated, fbm_height, height_normals
+from gpupro.lod import draw_generated, fbm_height, frame_buffers, frame_outputs, height_normals
 from gpupro.numerics import dot3
 from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh
@@ -632,9 +632,7 @@ def apply(params, inputs, scene, state, *, masters, slaves_per_master, knots, fi
     triangle = jnp.where(triangle < ribbons.num_faces, triangle, -1)  # blade faces come first
     blade_of = jnp.maximum(triangle, 0) // (2 * (knots - 1)) // per_master
     lod_weight = jnp.where(triangle >= 0, weights[shown][blade_of], 0.0)
-    outputs = {"hdr_grass": drawn_lawn["hdr"], "depth_grass": drawn_lawn["depth"],
-               "coverage_grass": drawn_lawn["coverage"], "lod_weight_grass": lod_weight,
-               "lod_scan_grass": scan}
+    outputs = {**frame_outputs("grass", drawn_lawn), "lod_weight_grass": lod_weight, "lod_scan_grass": scan}
     shown_masters = jnp.minimum(count, capacity)
     fixed = mesh.num_faces - ribbons.num_faces  # ground and spheres
     counters = {"triangles_drawn": (fixed + 2 * (knots - 1) * per_master * shown_masters).astype(jnp.int32),
@@ -659,6 +657,8 @@ def lod_cost(params, scene, **options) -> jax.Array:
     return ((1 + options["slaves_per_master"]) * jnp.sum(weights)).astype(jnp.float32)
 
 
+_FRAME_INPUTS, _FRAME_OUTPUTS = frame_buffers("grass", "lawn", "the sky")
+
 TECHNIQUE = register(Technique(
     id="grass",
     title="Grass: master/slave blade simulation (wind, spheres, shape and length constraints), radix-sorted distance LOD",
@@ -666,11 +666,8 @@ TECHNIQUE = register(Technique(
     family="lod",
     status="implemented",
     apply=apply,
-    inputs=(Buffer("hdr", "linear radiance of the scene's frame, drawn under the lawn", "RGB", optional=True),
-            Buffer("depth", "window depth of the scene's frame, 1 where empty", "Z", optional=True)),
-    outputs=(Buffer("hdr_grass", "linear radiance: the blades and the ground over the earlier frame (or the sky)", "RGB"),
-             Buffer("depth_grass", "window depth of the nearest of the blades, the ground and the earlier frame", "Z"),
-             Buffer("coverage_grass", "1 where a blade or the ground shows, 0 elsewhere", "Y"),
+    inputs=_FRAME_INPUTS,
+    outputs=_FRAME_OUTPUTS + (
              Buffer("lod_weight_grass", "LOD weight w of the visible blade, 0 elsewhere", "Y"),
              Buffer("lod_scan_grass", "int32 [257]: exclusive scan of the 8-bit LOD key histogram, total appended",
                     image=False)),

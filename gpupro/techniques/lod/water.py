@@ -101,7 +101,7 @@ bands in [0, L − 1], a piecewise-linear function of λ, hence of d_0 and w; as
 **On the clipmap machinery.** What of the geometry clipmaps (GPU Gems 2 ch. 2,
 :mod:`gpupro.techniques.lod.clipmaps`) applies to water is reused: the drawing of generated triangles
 over the frame (:func:`gpupro.lod.draw_generated`) and the per-pixel hit of the float triangle
-(:func:`gpupro.techniques.lod.clipmaps.continuous_surface`, above). The rest does not apply. The
+(:func:`gpupro.lod.continuous_surface`, above). The rest does not apply. The
 clipmap's nested windows and toroidal update cache a static terrain that is costly to evaluate, and
 rewrite only the strip that comes into view; the water's maps are periodic tiles that change every
 frame (τ_k), so every texel is rewritten each frame anyway (the render-to-texture pass), and a tile
@@ -133,14 +133,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import draw_generated
+from gpupro.lod import continuous_surface, draw_generated, frame_buffers, frame_outputs
 from gpupro.media.rays import pixel_rays
 from gpupro.numerics import dot3
 from gpupro.raster import normalize
 from gpupro.scene.camera import to_clip
 from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh
-from gpupro.techniques.lod.clipmaps import continuous_surface
 from gpupro.technique import (BOOLEAN, Buffer, Check, Counter, Option, OptionError, Param, Technique, integer, number,
                               one_of, optional, register, validate_options)
 
@@ -522,11 +521,12 @@ def apply(params, inputs, scene, state, *, rings, segments, inner_radius, outer_
     fetches = jnp.sum(jnp.where(inside, 1.0 + ((beta > 0) & (beta < 1)), 0.0))
     counters = {"triangles_drawn": drawn["triangles_drawn"], "vertices_displaced": jnp.sum(inside).astype(jnp.int32),
                 "texture_fetches": fetches.astype(jnp.float32)}
-    outputs = {"hdr_water": buffers["hdr"], "depth_water": buffers["depth"], "coverage_water": buffers["coverage"],
-               "water_vertices": positions}
+    outputs = {**frame_outputs("water", buffers), "water_vertices": positions}
     new_state = {"frame": (0 if state is None else state["frame"]) + jnp.int32(1)}
     return outputs, counters, new_state
 
+
+_FRAME_INPUTS, _FRAME_OUTPUTS = frame_buffers("water", "water", "the sky")
 
 TECHNIQUE = register(Technique(
     id="water",
@@ -535,13 +535,10 @@ TECHNIQUE = register(Technique(
     family="lod",
     status="partial",
     apply=apply,
-    inputs=(Buffer("hdr", "linear radiance of the scene's frame, drawn under the water", "RGB", optional=True),
-            Buffer("depth", "window depth of the scene's frame, 1 where empty", "Z", optional=True)),
-    outputs=(Buffer("hdr_water", "linear radiance: the water over the earlier frame (or the sky)", "RGB"),
-             Buffer("depth_water", "window depth of the nearer of the water and the earlier frame", "Z"),
-             Buffer("coverage_water", "1 where the water shows, 0 elsewhere", "Y"),
+    inputs=_FRAME_INPUTS,
+    outputs=_FRAME_OUTPUTS + (
              Buffer("water_vertices", "displaced radial-grid vertices [V, 3] (world units; vertex 0 under the eye, "
-                    "then ring by ring)", image=False)),
+                    "then ring by ring)", image=False),),
     options=(
         Option("rings", 64, integer(2), "rings N of the radial grid"),
         Option("segments", 128, integer(3), "vertices M per ring"),
