@@ -54,6 +54,7 @@ def test_fused_kernel_equals_the_xla_light_loop():
     np.testing.assert_allclose(np.asarray(got), np.asarray(expected), rtol=1e-5, atol=1e-5 * float(jnp.max(expected)))
 
 
+@pytest.mark.slow  # 18 s in the interpreter on the 2-core CPU, where the kernel is not used; the GPU runs it
 def test_fused_kernel_gradients_are_the_xla_loop_gradients():
     surfaces, lights = _surfaces(), _lights()
     weights = jnp.asarray(np.random.default_rng(2).uniform(0, 1, (P, 3)), jnp.float32)
@@ -84,6 +85,7 @@ def _grouped(x, groups=25):
     return x.reshape((groups, P // groups) + x.shape[1:])
 
 
+@pytest.mark.slow  # 26 s in the interpreter on the 2-core CPU, where the kernel is not used; the GPU runs it
 def test_light_list_kernel_equals_the_bucketed_xla_loop():
     """Per-group lists of different lengths, with holes (−1 inside a list) and a group reading no row."""
     surfaces, lights = [_grouped(x) for x in _surfaces()], _lights()
