@@ -56,12 +56,12 @@ blue, the fits in red labelled with λ, the grid's best points ringed in blue).
 
 **Measured** on the 2-core CPU (hard J; "beats" when the fit's J is below the grid's best):
 
-- grass (configs/lod/fit_lod.toml: 1,000 masters, 96x54, 4 frames, 18-point grid, SGD 24 steps; 1 min 57 s
-  wall): ∇J at f = 0.5, λ = 1: −0.619 (jax.grad) against −0.653 (central difference, h = 0.005). λ = 0:
-  f 0.704, J 0.0004 against the grid's 0.0000 at 0.75 (loses: the error's gradient vanishes with the
-  error, and SGD creeps); λ = 0.1: 0.664, 0.0648 against 0.0671 at 0.70 (beats); λ = 0.3: 0.636, 0.1822
-  against 0.1828 at 0.65 (beats); λ = 1: 0.577, 0.5390 against 0.5451 at 0.60 (beats); λ = 3: 0.322,
-  1.0915 against 1.0000 at 0.05 (loses: J_3 has a local minimum near 0.32, and its global one is the box's
+- grass (configs/lod/fit_lod.toml: 1,000 masters, 96x54, 4 frames, 18-point grid, SGD 24 steps; 1 min 50 s
+  wall): ∇J at f = 0.5, λ = 1: −0.6127 (jax.grad) against −0.6157 (central difference, h = 0.005). λ = 0:
+  f 0.703, J 0.0004 against the grid's 0.0000 at 0.75 (loses: the error's gradient vanishes with the
+  error, and SGD creeps); λ = 0.1: 0.663, 0.0648 against 0.0671 at 0.70 (beats); λ = 0.3: 0.634, 0.1815
+  against 0.1828 at 0.65 (beats); λ = 1: 0.567, 0.5346 against 0.5451 at 0.60 (beats); λ = 3: 0.376,
+  1.0740 against 1.0000 at 0.05 (loses: J_3 has a local minimum near 0.38, and its global one is the box's
   corner, drawing almost nothing, which descent from 0.5 does not reach).
 - gpu_terrain (``--variant gpu_terrain``: 5 levels of 40², 96x54, 4 frames, 55 ordered points of an
   11 × 11 grid; 1 min 50 s): ∇J at (0.3, 0.7), λ = 5: (0.1646, 0.1836) against (0.1703, 0.1775). λ = 1 and
@@ -70,10 +70,11 @@ blue, the fits in red labelled with λ, the grid's best points ringed in blue).
   J is not convex in the band, and these are stationary points of the relaxed J, ∇J ≈ 0 there); λ = 20:
   (0, 0.05), 16.8403 against 17.0868 at (0, 0.1) (beats).
 
-The grass view keeps the lawn filling the frame: ``grass`` fades a blade towards the ground's look (albedo
-and normal), not towards what lies behind it, so a faded blade against the sky is a ground-coloured
-sliver, and the selection's edge at D_thr + 6τ then adds such blades in steps that the gradient does not
-see (with the sky in view the error's central difference was 5× the gradient).
+The grass view keeps the lawn filling the frame. With the sky in view (``--set camera.eye=[-0.5,0.5,4.6]
+--set camera.target=[-0.5,0.35,1.0]``, the path's end lowered alike) the gradient at f = 0.5, λ = 1 is
+0.185 against a central difference of 0.159: faded blades fade into the sky, but a faded blade in front
+of another fades into the ground behind both (``grass``'s docstring), and the selection's edge at
+D_thr + 6τ adds blades in steps the gradient does not see.
 """
 
 from __future__ import annotations

@@ -251,6 +251,29 @@ def test_pass_draws_over_the_frame_by_depth_threads_state_and_counts_its_work():
     assert set(np.unique(np.asarray(out["lod_weight_grass"]))) <= {0.0, 1.0}  # zero temperature: the hard threshold
 
 
+def test_a_fading_blade_blends_into_what_lies_behind_it():
+    """L = w L_blade + (1 − w) L_behind on every blade pixel, over an earlier frame of a colour that neither
+    the blades nor the ground have (fading towards the ground's look, as the sky would show it, fails)."""
+    scene, behind = _scene(), np.array([0.9, 0.1, 0.6], np.float32)
+    technique = make_pass("grass", masters=M, slaves_per_master=2, knots=8, field_size=1.5, grass_seed=3,
+                          blade_scale=2.0, blade_width=0.01, ground_cells=2, max_distance=4.0, blade_capacity=M,
+                          simulation_chunk=16, spheres="", ground=False, gravity=0.0, wind_acceleration="0, 0, 0",
+                          **TERRAIN)  # no forces: the blades stay at rest whichever are simulated
+    frame = {"hdr": jnp.broadcast_to(jnp.asarray(behind), (32, 32, 3)), "depth": jnp.ones((32, 32))}
+    run = jax.jit(lambda params: technique.run(dict(technique.params, **params), frame, scene,
+                                               technique.init_state(scene))[0])
+    full = run(dict(lod_threshold=jnp.float32(0.99), lod_temperature=jnp.float32(0.0)))  # every blade in view, w = 1
+    faded = run(dict(lod_threshold=jnp.float32(0.5), lod_temperature=jnp.float32(0.2)))  # all selected, 0 < w < 1
+    blade = np.asarray(full["coverage_grass"]) > 0
+    np.testing.assert_array_equal(np.asarray(faded["coverage_grass"]) > 0, blade)
+    np.testing.assert_array_equal(np.asarray(full["lod_weight_grass"])[blade], 1.0)
+    w = np.asarray(faded["lod_weight_grass"])[blade][:, None]
+    assert w.min() < 0.5 < w.max() < 1.0
+    expected = w * np.asarray(full["hdr_grass"])[blade] + (1.0 - w) * behind
+    np.testing.assert_allclose(np.asarray(faded["hdr_grass"])[blade], expected, rtol=1e-5, atol=1e-6)
+    assert np.abs(np.asarray(full["hdr_grass"])[blade] - behind).max(axis=-1).min() > 0.3  # every blade pixel differs
+
+
 def test_bad_options_are_refused_by_name():
     with pytest.raises(ValueError, match="sphere_velocities: expected one velocity per sphere"):
         technique = make_pass("grass", masters=8, knots=3, ground_cells=1, spheres="0, 0.5, 0, 0.5; 1, 0.5, 1, 0.5",

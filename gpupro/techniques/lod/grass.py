@@ -52,10 +52,11 @@ sorted order (the nearest), at most ``blade_capacity`` of them (further ones are
 The LOD ratio n / M is Listing 2.5's.
 
 **Differentiable LOD.** Each master's weight w_m = σ((D_thr − d̂_m)/τ), d̂_m = q_m D_max / 255 the
-lower edge of its key's bucket, τ = ``lod_temperature`` · D_max, fades its blades into the ground: a
-blade pixel takes the albedo and normal a = a_ground + w (a_blade − a_ground), n ∝ w n_blade + (1 − w)
-n_terrain(x) of the terrain under it (the blade still occludes; at w = 0 it shades as the ground would
-there). The selection is widened to
+lower edge of its key's bucket, τ = ``lod_temperature`` · D_max, fades its blades into what lies behind
+them: a blade pixel's radiance is L = w L_blade + (1 − w) L_behind, with L_behind that of the ground,
+spheres and earlier frame drawn without blades (the sky where none is), so that a fading blade against
+the sky fades into the sky. (A faded blade in front of another blade fades into the ground behind both,
+not into that blade; depth and coverage stay the blade's, down to w = 0.) The selection is widened to
 D_thr + 6τ (σ(−6) < 0.0025) so that the faded blades are drawn and simulated; at τ = 0, w is the
 indicator q_m ≤ q_thr and the selection is the chapter's. As τ → 0, w tends to that indicator except at
 bucket edges (255 D_thr/D_max an integer equal to q_m, where w = ½). :func:`lod_cost` is the expected
@@ -64,11 +65,11 @@ number of blades drawn, (1 + S) Σ_m w_m, smooth in D_thr and τ.
 **Drawing** (sec. 2.2). Knot i becomes two vertices x_i ± ½ w_i b_i with w_i the root width times
 (1 − t_i) (a sharp tip) and b_i the blade's binormal (⊥ to its bending plane) made orthogonal to the
 stem's tangent: 2(N − 1) triangles a blade (the chapter's 30). The ground (a ``ground_cells``² grid of the
-terrain) and then the blades are drawn by :func:`gpupro.lod.draw_generated` over the optional ``hdr`` and
-``depth``; normals face the viewer (the chapter's ``SV_IsFrontFace`` flip). The shading is the scene's
+terrain) and the spheres are drawn by :func:`gpupro.lod.draw_generated` over the optional ``hdr`` and
+``depth``, then the blades over that (the LOD blend above); normals face the viewer (the chapter's ``SV_IsFrontFace`` flip). The shading is the scene's
 lights (the project's deferred BRDF) plus the hemispherical ambient of the chapter,
 ambient = sky · r + earth · (1 − r), applied to the albedo (blade albedo × (0.4 + 0.6 t) along the blade,
-darker towards the root), with r = ½ (1 + n·up).
+darker towards the root), with r = ½ (1 + n·up); the ground takes the terrain's analytic normal.
 
 **Departures.** The five blade types are procedural (the chapter's come from an in-house tool);
 textures are a colour per surface; the deferred BRDF replaces Phong; the printed ratio r = up·n lies in
@@ -471,45 +472,55 @@ def _unit_sphere() -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.positions, np.float32), np.asarray(mesh.faces, np.int32)
 
 
-def lawn_mesh(blade_ribbons: Mesh, blades: Blades, centres, radii, *, ground: bool, draw_spheres: bool) -> Mesh:
-    """The blades ``blade_ribbons`` (:func:`blade_mesh`, their faces first), then the ground grid of
-    ``blades`` (with ``ground``; uv 0, material 0) and the spheres at ``centres`` [K, 3] of ``radii`` [K]
-    (with ``draw_spheres``; material 1), as one mesh."""
-    parts = [(blade_ribbons.positions, blade_ribbons.faces, blade_ribbons.normals, blade_ribbons.uv, 0)]
+def scenery_mesh(blades: Blades, centres, radii, *, ground: bool, draw_spheres: bool) -> Mesh | None:
+    """The ground grid of ``blades`` (with ``ground``; material 0) and the spheres at ``centres`` [K, 3] of
+    ``radii`` [K] (with ``draw_spheres``; material 1) as one mesh (uv 0), the lawn without its blades;
+    None when neither is drawn."""
+    parts = []
     if ground:
         parts.append((jnp.asarray(blades.ground_positions), jnp.asarray(blades.ground_faces),
-                      jnp.asarray(blades.ground_normals), None, 0))
+                      jnp.asarray(blades.ground_normals), 0))
     if draw_spheres and centres.shape[0]:
         unit, faces = _unit_sphere()
         k, v = centres.shape[0], unit.shape[0]
         positions = (centres[:, None] + radii[:, None, None] * unit).reshape(-1, 3)
         parts.append((positions, (faces[None] + v * np.arange(k)[:, None, None]).reshape(-1, 3),
-                      jnp.tile(jnp.asarray(unit), (k, 1)), None, 1))
+                      jnp.tile(jnp.asarray(unit), (k, 1)), 1))
+    if not parts:
+        return None
     offsets = np.cumsum([0] + [p[0].shape[0] for p in parts[:-1]])
-    return Mesh(jnp.concatenate([p[0] for p in parts]),
-                jnp.concatenate([jnp.asarray(p[1]) + o for p, o in zip(parts, offsets)]),
-                jnp.concatenate([p[2] for p in parts]),
-                jnp.concatenate([jnp.zeros((p[0].shape[0], 2), jnp.float32) if p[3] is None else p[3] for p in parts]),
-                jnp.concatenate([jnp.full(p[1].shape[0], p[4], jnp.int32) for p in parts]))
+    positions = jnp.concatenate([p[0] for p in parts])
+    return Mesh(positions, jnp.concatenate([jnp.asarray(p[1]) + o for p, o in zip(parts, offsets)]),
+                jnp.concatenate([p[2] for p in parts]), jnp.zeros((positions.shape[0], 2), jnp.float32),
+                jnp.concatenate([jnp.full(p[1].shape[0], p[3], jnp.int32) for p in parts]))
 
 
-def shade_lawn(gbuffer, scene, params, *, terrain) -> jax.Array:
-    """Radiance [H, W, 3] of the pixels of ``gbuffer`` showing :func:`lawn_mesh` (uv = (w, t): LOD weight
-    and position along the blade, 0 on the ground): albedo a = ground + w (blade (0.4 + 0.6 t) − ground)
-    and normal n ∝ w n_blade + (1 − w) n_terrain (a faded blade takes the ground's look; material 1, the
-    spheres: their colour and normal), shaded by ``scene.lights`` through the deferred BRDF plus the
-    hemispherical ambient a (sky r + earth (1 − r)), r = ½ (1 + n·up). ``params``: the technique's colours
-    and ambients; ``terrain`` the options of :func:`terrain_height`."""
-    w, t = gbuffer["uv"][..., :1], gbuffer["uv"][..., 1:2]
-    ground = params["ground_color"]
-    blade = params["blade_color"] * (_ROOT_SHADE + (1.0 - _ROOT_SHADE) * t)
-    sphere = (gbuffer["material_id"] == 1)[..., None]
-    albedo = gbuffer["base_color"] * jnp.where(sphere, params["sphere_color"], ground + w * (blade - ground))
-    below = terrain_normal(gbuffer["position"][..., 0], gbuffer["position"][..., 2], terrain=terrain)
-    normal = jnp.where(sphere, gbuffer["normal"], _normalize(w * gbuffer["normal"] + (1.0 - w) * below))
+def _lit(gbuffer, albedo, normal, scene, params) -> jax.Array:
+    """The scene's lights through the deferred BRDF plus the hemispherical ambient albedo (sky r + earth
+    (1 − r)), r = ½ (1 + n·up), at the G-buffer's points with ``albedo`` and ``normal`` [H, W, 3]."""
     direct, _ = shade_deferred(dict(gbuffer, base_color=albedo, normal=normal), scene.lights, scene.camera.eye)
     r = 0.5 * (1.0 + normal[..., 1:2])
     return direct + albedo * (params["sky_ambient"] * r + params["earth_ambient"] * (1.0 - r))
+
+
+def shade_scenery(gbuffer, scene, params, *, terrain) -> jax.Array:
+    """Radiance [H, W, 3] of the pixels of ``gbuffer`` showing :func:`scenery_mesh`: the ground (material
+    0) in ``ground_color`` with the terrain's analytic normal, the spheres (material 1) in
+    ``sphere_color`` with their own (:func:`_lit`). ``params``: the technique's colours and ambients;
+    ``terrain`` the options of :func:`terrain_height`."""
+    sphere = (gbuffer["material_id"] == 1)[..., None]
+    albedo = gbuffer["base_color"] * jnp.where(sphere, params["sphere_color"], params["ground_color"])
+    below = terrain_normal(gbuffer["position"][..., 0], gbuffer["position"][..., 2], terrain=terrain)
+    return _lit(gbuffer, albedo, jnp.where(sphere, gbuffer["normal"], below), scene, params)
+
+
+def shade_blades(gbuffer, behind, scene, params) -> jax.Array:
+    """Radiance [H, W, 3] of the pixels of ``gbuffer`` showing :func:`blade_mesh` (uv = (w, t): LOD weight
+    and position along the blade), faded into ``behind`` [H, W, 3] (the radiance drawn without the blades):
+    w L_blade + (1 − w) behind, L_blade lit (:func:`_lit`) with albedo ``blade_color`` (0.4 + 0.6 t)."""
+    w, t = gbuffer["uv"][..., :1], gbuffer["uv"][..., 1:2]
+    albedo = gbuffer["base_color"] * params["blade_color"] * (_ROOT_SHADE + (1.0 - _ROOT_SHADE) * t)
+    return w * _lit(gbuffer, albedo, gbuffer["normal"], scene, params) + (1.0 - w) * behind
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -622,19 +633,27 @@ def apply(params, inputs, scene, state, *, masters, slaves_per_master, knots, fi
                          jnp.asarray(blades.width)[shown].reshape(-1), repeat(weights[shown]), repeat(drawn))
     centres, radii = sphere_centres(state["frame"].astype(jnp.float32) * time_step, spheres=sphere_array,
                                     sphere_velocities=velocity_array, terrain=terrain)
-    mesh = lawn_mesh(ribbons, blades, centres, radii, ground=ground, draw_spheres=draw_spheres)
-    # make_materials on host values (it validates them); the colours are the params, applied in shade_lawn.
-    white = make_materials([[1.0, 1.0, 1.0]] * 2, roughness=[0.9, 0.5])
-    drawn_lawn, _ = draw_generated(mesh, white, scene, background=params["sky_ambient"], hdr=inputs.get("hdr"),
-                                   depth=inputs.get("depth"), antialias=antialias,
-                                   shade=lambda g: shade_lawn(g, scene, params, terrain=terrain))
+    scenery = scenery_mesh(blades, centres, radii, ground=ground, draw_spheres=draw_spheres)
+    # make_materials on host values (it validates them); the colours are the params, applied by the shading.
+    behind, depth = inputs.get("hdr"), inputs.get("depth")
+    if behind is None:
+        behind = jnp.broadcast_to(params["sky_ambient"], tuple(camera.resolution) + (3,))
+    covered = 0.0
+    if scenery is not None:
+        drawn_scenery, _ = draw_generated(scenery, make_materials([[1.0, 1.0, 1.0]] * 2, roughness=[0.9, 0.5]), scene,
+                                          hdr=behind, depth=depth, antialias=antialias,
+                                          shade=lambda g: shade_scenery(g, scene, params, terrain=terrain))
+        behind, depth, covered = drawn_scenery["hdr"], drawn_scenery["depth"], drawn_scenery["coverage"]
+    drawn_lawn, _ = draw_generated(ribbons, make_materials([[1.0, 1.0, 1.0]], roughness=[0.9]), scene, hdr=behind,
+                                   depth=depth, antialias=antialias,
+                                   shade=lambda g: shade_blades(g, behind, scene, params))
     triangle = drawn_lawn["triangle_id"]
-    triangle = jnp.where(triangle < ribbons.num_faces, triangle, -1)  # blade faces come first
     blade_of = jnp.maximum(triangle, 0) // (2 * (knots - 1)) // per_master
     lod_weight = jnp.where(triangle >= 0, weights[shown][blade_of], 0.0)
+    drawn_lawn = dict(drawn_lawn, coverage=jnp.maximum(covered, drawn_lawn["coverage"]))
     outputs = {**frame_outputs("grass", drawn_lawn), "lod_weight_grass": lod_weight, "lod_scan_grass": scan}
     shown_masters = jnp.minimum(count, capacity)
-    fixed = mesh.num_faces - ribbons.num_faces  # ground and spheres
+    fixed = 0 if scenery is None else scenery.num_faces  # ground and spheres
     counters = {"triangles_drawn": (fixed + 2 * (knots - 1) * per_master * shown_masters).astype(jnp.int32),
                 "blades_drawn": (per_master * shown_masters).astype(jnp.int32), "blades_simulated": count,
                 "blades_selected": count, "blade_overflow": jnp.maximum(count - capacity, 0).astype(jnp.int32),
