@@ -102,6 +102,7 @@ def test_bounds_and_normal_cones_equal_brute_force_and_cull_more(variant):
 TEN_THOUSAND = dict(tile=8, bounds="explicit", tree_branching=32, cluster_light_capacity=256, frontier_capacity=8192)
 
 
+@pytest.mark.slow  # 20 s on the 2-core CPU; the hundred-light and tree-list cases run by default
 def test_ten_thousand_lights_equal_brute_force_and_the_tree_finds_the_brute_force_lists():
     lights = ten_thousand_lights()
     fast, slow, counters, slow_counters = shade_both(lights, **TEN_THOUSAND)

@@ -40,6 +40,7 @@ def _square(y: float) -> Mesh:
                 jnp.zeros((4, 2)), jnp.zeros(2, jnp.int32))
 
 
+@pytest.mark.slow  # 18 s on the 2-core CPU; each LOD pass's own test draws over a frame by depth by default
 def test_generated_surface_shows_only_where_nearer_than_the_frame():
     scene = gp.scenes.plane(resolution=(32, 32))
     scene = scene.replace(camera=gp.scene.make_camera((0.0, 5.0, 0.01), (0.0, 0.0, 0.0), resolution=(32, 32)))
