@@ -27,6 +27,7 @@ import typing
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -309,6 +310,15 @@ def param_array(param: Param, value) -> jnp.ndarray:
     if (array < param.lower).any() or (array > param.upper).any():
         raise OptionError(param.name, f"expected values in [{param.lower}, {param.upper}] ({param.unit}), got {value!r}")
     return jnp.asarray(array)
+
+
+def check_finite_params(params: Mapping[str, Any], names, caller: str) -> None:
+    """Raises ``ValueError`` naming ``caller`` when a concrete value of ``params[name]`` (for each of
+    ``names``) is not finite; traced values (under ``jit`` or ``grad``) are left to the caller."""
+    for name in names:
+        value = params[name]
+        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
+            raise ValueError(f"{caller}: {name} must be finite, got {value!r}")
 
 
 def default_params(technique: Technique, overrides: Mapping[str, Any] | None = None) -> dict | None:

@@ -17,14 +17,24 @@ import jax
 import jax.numpy as jnp
 
 
-def _hash(ix: jax.Array, iz: jax.Array, salt: jax.Array) -> jax.Array:
-    """A value in [−1, 1] per integer lattice point (int32 arrays), mixed with ``salt`` (uint32)."""
+def _hash_bits(ix: jax.Array, iz: jax.Array, salt: jax.Array) -> jax.Array:
+    """24 mixed bits (uint32 below 2^24) per integer lattice point (int32 arrays), mixed with ``salt`` (uint32)."""
     h = ix.astype(jnp.uint32) * jnp.uint32(0x8DA6B343) ^ iz.astype(jnp.uint32) * jnp.uint32(0xD8163841) ^ salt
     # Two rounds of the xorshift–multiply finaliser: every input bit reaches every output bit.
     for multiplier in (0x7FEB352D, 0x846CA68B):
         h = (h ^ (h >> 16)) * jnp.uint32(multiplier)
-    h = h ^ (h >> 15)
-    return (h >> 8).astype(jnp.float32) * (2.0 / (1 << 24)) - 1.0
+    return (h ^ (h >> 15)) >> 8
+
+
+def _hash(ix: jax.Array, iz: jax.Array, salt: jax.Array) -> jax.Array:
+    """A value in [−1, 1] per integer lattice point (int32 arrays), mixed with ``salt`` (uint32)."""
+    return _hash_bits(ix, iz, salt).astype(jnp.float32) * (2.0 / (1 << 24)) - 1.0
+
+
+def hash_uniform(ix: jax.Array, iz: jax.Array, salt: jax.Array) -> jax.Array:
+    """A uniform variate float32 [...] in [0, 1) per integer lattice point (int32 ``ix``, ``iz`` [...] of
+    one shape), mixed with ``salt`` (uint32): the hash of :func:`fbm_height`'s value noise."""
+    return _hash_bits(ix, iz, salt).astype(jnp.float32) / (1 << 24)
 
 
 def _fade(t: jax.Array) -> jax.Array:
@@ -69,3 +79,15 @@ def height_normals(heights: jax.Array, spacing) -> jax.Array:
     dz, dx = jnp.gradient(heights, spacing)
     n = jnp.stack([-dx, jnp.ones_like(heights), -dz], axis=-1)
     return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+
+
+TERRAIN_KEYS = ("terrain_amplitude", "terrain_wavelength", "terrain_octaves", "terrain_seed", "terrain_elevation")
+"""The options of the LOD techniques that set their fBm terrain: the keywords of :func:`terrain_height`."""
+
+
+def terrain_height(x, z, *, terrain_amplitude, terrain_wavelength, terrain_octaves, terrain_seed,
+                   terrain_elevation) -> jax.Array:
+    """The terrain height h (world units) at world ``x``, ``z`` (float arrays, any shape, one shape):
+    ``terrain_elevation`` + :func:`fbm_height`."""
+    return terrain_elevation + fbm_height(x, z, amplitude=terrain_amplitude, wavelength=terrain_wavelength,
+                                          octaves=terrain_octaves, seed=terrain_seed)

@@ -118,15 +118,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import continuous_surface, draw_generated, fbm_height, frame_buffers, frame_outputs, height_normals
+from gpupro.lod import (TERRAIN_KEYS, continuous_surface, draw_generated, frame_buffers, frame_outputs, height_normals,
+                        terrain_height, terrain_materials)
 from gpupro.media.rays import pixel_rays
 from gpupro.numerics import dot3
 from gpupro.raster.surface import bend_towards_viewer, normalize
-from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh
 from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, Param, Technique, integer, number,
-                              register, validate_options)
+from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, Param, Technique,
+                              check_finite_params, integer, number, register, validate_options)
 
 FOUR_POINT = (-1.0 / 16.0, 9.0 / 16.0, 9.0 / 16.0, -1.0 / 16.0)
 """Kobbelt's four-point interpolatory weights on the coarse samples I − 1 … I + 2 of an odd fine sample."""
@@ -174,8 +174,7 @@ def _rectangles(rects) -> tuple[np.ndarray, np.ndarray]:
 def footprints(*, grid_size: int) -> dict:
     """The static footprints of one level, as int32 faces [F, 3] into its n × n vertex grid (``grid_size``
     n): ``ring`` (12 blocks and 4 fix-ups), ``degenerate`` (the 2(n − 1) perimeter triangles) and ``fill``
-    (the finest level's interior: 4 blocks and the fix-up cross), plus ``ring_quads`` and ``fill_quads``
-    (a [Q], b [Q]) for tests."""
+    (the finest level's interior: 4 blocks and the fix-up cross)."""
     n, k = grid_size, (grid_size + 1) // 4 - 1  # k = m − 1 quads per block
     starts = (0, k, 2 * k + 2, 3 * k + 2)
     blocks = [(starts[i], starts[j], k, k) for j in range(4) for i in range(4) if i in (0, 3) or j in (0, 3)]
@@ -191,8 +190,7 @@ def footprints(*, grid_size: int) -> dict:
     degenerate = np.concatenate([np.stack([(b + s * db) * n + a + s * da for s in range(3)[::order]], -1)
                                  for a, b, da, db, order in sides])
     as_faces = lambda quads: _quad_faces(quads[0], quads[1], n).astype(np.int32)
-    return {"ring": as_faces(ring), "degenerate": degenerate.astype(np.int32), "fill": as_faces(fill),
-            "ring_quads": ring, "fill_quads": fill}
+    return {"ring": as_faces(ring), "degenerate": degenerate.astype(np.int32), "fill": as_faces(fill)}
 
 
 def trim_faces(t_x, t_z, *, grid_size: int) -> jax.Array:
@@ -231,14 +229,6 @@ def viewer_cells(eye, *, clip_levels: int, base_spacing: float) -> jax.Array:
 def window_origins(cells, *, grid_size: int) -> jax.Array:
     """Window origins o_l int32 [L, 2] (x, z; level grid units) = 2 c_l − 2(m − 1) from ``cells`` [L, 2]."""
     return 2 * cells - 2 * ((grid_size + 1) // 4 - 1)
-
-
-def terrain_height(x, z, *, terrain_amplitude, terrain_wavelength, terrain_octaves, terrain_seed,
-                   terrain_elevation) -> jax.Array:
-    """The true terrain height h (world units) at world ``x``, ``z`` (float arrays, any shape, one shape):
-    ``terrain_elevation`` + :func:`gpupro.lod.fbm_height`."""
-    return terrain_elevation + fbm_height(x, z, amplitude=terrain_amplitude, wavelength=terrain_wavelength,
-                                          octaves=terrain_octaves, seed=terrain_seed)
 
 
 def upsample(coarse, i, j, *, weights=FOUR_POINT) -> jax.Array:
@@ -481,8 +471,7 @@ def _shading(mesh: Mesh, scene, ambient):
 
 
 def _terrain(options) -> dict:
-    return {k: options[k] for k in ("terrain_amplitude", "terrain_wavelength", "terrain_octaves", "terrain_seed",
-                                    "terrain_elevation")}
+    return {k: options[k] for k in TERRAIN_KEYS}
 
 
 def init_state(scene, *, clip_levels, grid_size, **_):
@@ -509,8 +498,7 @@ def apply(params, inputs, scene, state, *, clip_levels, grid_size, base_spacing,
     mesh, face_levels, counters = clipmap_mesh(params, state["heights"], state["origins"], eye, active,
                                                terrain=terrain, level_colors=level_colors, **levels)
     colors = LEVEL_COLORS if level_colors else (TERRAIN_COLOR,)
-    # make_materials on host values: gpupro.lod.terrain_materials converts through jnp, which fails under jit.
-    materials = make_materials(colors, roughness=[0.9] * len(colors))
+    materials = terrain_materials(colors)
     drawn, _ = draw_generated(mesh, materials, scene, background=params["background"], hdr=inputs.get("hdr"),
                               depth=inputs.get("depth"), antialias=antialias, cull_backfaces=True,
                               shade=_shading(mesh, scene, params["ambient"]))
@@ -527,10 +515,7 @@ def lod_cost(params, scene, **options) -> jax.Array:
     piecewise linear (smooth between the band edges) in κ and σ. Raises ``ValueError`` for unknown options or
     non-finite concrete params."""
     options = validate_options(TECHNIQUE, options)
-    for name in ("activation_factor", "activation_softness"):
-        value = params[name]
-        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
-            raise ValueError(f"lod_cost: {name} must be finite, got {value!r}")
+    check_finite_params(params, ("activation_factor", "activation_softness"), "lod_cost")
     levels = {k: options[k] for k in ("clip_levels", "grid_size", "base_spacing")}
     beta = level_morph(params, _extents(**levels), _viewer_height(scene.camera.eye, _terrain(options)),
                        clip_levels=levels["clip_levels"])

@@ -125,15 +125,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import continuous_surface, draw_generated, fbm_height, frame_buffers, frame_outputs
+from gpupro.lod import (continuous_surface, draw_generated, fbm_height, frame_buffers, frame_outputs, hash_uniform,
+                        terrain_materials)
 from gpupro.media.rays import pixel_rays
 from gpupro.raster.surface import bend_towards_viewer, normalize
 from gpupro.scene.camera import to_clip
-from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh
 from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique, integer,
-                              number, one_of, register, validate_options)
+from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique,
+                              check_finite_params, integer, number, one_of, register, validate_options)
 
 MAX_SHIFT = 16
 """Largest level shift s (u = R·2^s), so that integer vertex coordinates stay far inside int32."""
@@ -237,10 +237,9 @@ def view_extent(*, quad_resolution: float, level_size: int, level_count: int) ->
 
 
 def map_coordinates(*, map_size: int, map_spacing: float):
-    """World x (columns) and z (rows) of the texel centres of a ``map_size``² height map ``map_spacing``
-    apart, centred on the origin: two float32 [N] arrays."""
-    axis = (jnp.arange(map_size, dtype=jnp.float32) - 0.5 * (map_size - 1)) * map_spacing
-    return axis, axis
+    """World coordinates float32 [N] of the texel centres of a ``map_size``² height map ``map_spacing``
+    apart, centred on the origin, along either axis (x of the columns, z of the rows)."""
+    return (jnp.arange(map_size, dtype=jnp.float32) - 0.5 * (map_size - 1)) * map_spacing
 
 
 def sample_height(heights, x, z, *, spacing):
@@ -264,8 +263,7 @@ def _normal(heights, x, z, spacing):
     """Unit normals [..., 3] of the bilinear height surface by central differences one texel apart."""
     dx = sample_height(heights, x + spacing, z, spacing=spacing) - sample_height(heights, x - spacing, z, spacing=spacing)
     dz = sample_height(heights, x, z + spacing, spacing=spacing) - sample_height(heights, x, z - spacing, spacing=spacing)
-    n = jnp.stack([-dx, jnp.full_like(dx, 2.0 * spacing), -dz], -1)
-    return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+    return normalize(jnp.stack([-dx, jnp.full_like(dx, 2.0 * spacing), -dz], -1))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -336,8 +334,7 @@ def terrain_mesh(heights, eye, morph_start, morph_end, *, quad_resolution: float
     coarse = 0.5 * (_normal(heights, x0, z0, map_spacing) + _normal(heights, x1, z1, map_spacing))
     normal = _normal(heights, x, z, map_spacing)
     normal = normal + alpha[:, None] * (coarse - normal)
-    normal = normal / jnp.linalg.norm(normal, axis=-1, keepdims=True)
-    return TerrainMesh(jnp.stack([x, y, z], -1), normal, alpha, unit * centres.astype(jnp.float32), unit, shift)
+    return TerrainMesh(jnp.stack([x, y, z], -1), normalize(normal), alpha, unit * centres.astype(jnp.float32), unit, shift)
 
 
 def _hull_corners(level_size: int):
@@ -435,14 +432,6 @@ def wheel(heights, compression, x, z, *, origin, direction, length, radius, widt
     total = jnp.sum(tent)
     pushed = push * jnp.sum(depth) * jnp.where(total > 0, tent / jnp.where(total > 0, total, 1.0), 0.0)
     return heights - depth + pushed, jnp.minimum(compression + depth / sink, 1.0)
-
-
-def _hash_uniform(rows, cols, salt):
-    """A uniform variate in [0, 1) per texel (int32 ``rows`` × ``cols`` index grids) and uint32 ``salt``."""
-    h = rows.astype(jnp.uint32) * jnp.uint32(0x8DA6B343) ^ cols.astype(jnp.uint32) * jnp.uint32(0xD8163841) ^ salt
-    for multiplier in (0x7FEB352D, 0x846CA68B):
-        h = (h ^ (h >> 16)) * jnp.uint32(multiplier)
-    return ((h ^ (h >> 15)) >> 8).astype(jnp.float32) / (1 << 24)
 
 
 def erode(heights, flowability_map, *, spacing, repose_slope, region=None, jitter=None):
@@ -553,7 +542,7 @@ def _erode_window(sub, rows, cols, inside, frame, salt, o):
         jitter = None
         if o["erosion_jitter"] > 0:
             key = jnp.uint32(salt) ^ (frame * o["erosion_steps"] + s).astype(jnp.uint32) * jnp.uint32(0x9E3779B1)
-            jitter = o["erosion_jitter"] * _hash_uniform(rows[:, None], cols[None, :], key)
+            jitter = o["erosion_jitter"] * hash_uniform(rows[:, None], cols[None, :], key)
         return erode(h, sub["flowability"], spacing=o["map_spacing"], repose_slope=o["repose_slope"], region=inside,
                      jitter=jitter)
 
@@ -567,7 +556,7 @@ def modify(state, o):
     ``window_needed``, the longest side (texels) of a work region, the window that would have held it."""
     maps = {k: state[k] for k in ("height", "flowability", "compression")}
     n, spacing, frame = o["map_size"], o["map_spacing"], state["frame"]
-    xs, _ = map_coordinates(map_size=n, map_spacing=spacing)
+    xs = map_coordinates(map_size=n, map_spacing=spacing)
     margin = o["erosion_steps"] + 1
     overflow, needed = jnp.int32(0), jnp.int32(0)
     fbm = dict(amplitude=o["height_amplitude"], wavelength=o["height_wavelength"], octaves=o["height_octaves"],
@@ -621,7 +610,7 @@ def init_state(scene, **options):
     """The first frame's state: the fBm height map [N, N] (world units), flowability [N, N] (the
     ``flowability`` option), compression [N, N] (0) and the frame number 0."""
     o = _checked(options)
-    axis, _ = map_coordinates(map_size=o["map_size"], map_spacing=o["map_spacing"])
+    axis = map_coordinates(map_size=o["map_size"], map_spacing=o["map_spacing"])
     x, z = jnp.meshgrid(axis, axis)
     heights = fbm_height(x, z, amplitude=o["height_amplitude"],
                          wavelength=o["height_wavelength"], octaves=o["height_octaves"], seed=o["height_seed"])
@@ -671,8 +660,7 @@ def apply(params, inputs, scene, state, *, quad_resolution, level_size, level_co
     else:
         ids = top.face_level if coloring == "levels" else top.mesh
         colors = _PALETTE[np.arange(level_count if coloring == "levels" else 5) % len(_PALETTE)]
-    # As gpupro.lod.terrain_materials, from NumPy: that one converts with jnp first, which fails under jit.
-    materials = make_materials(colors, roughness=[0.9] * len(colors))
+    materials = terrain_materials(colors)
     generated = Mesh(mesh.positions, faces, mesh.normals, uv, jnp.asarray(ids, jnp.int32))
     buffers, _ = draw_generated(generated, materials, scene, background=params["background"], hdr=inputs.get("hdr"),
                                 depth=inputs.get("depth"), antialias=antialias,
@@ -705,10 +693,7 @@ def lod_cost(params, scene, *, state=None, **options):
     that switches to the coarser level at morph_end, and with no triangle morphing (one level, or the band
     past every triangle) it is the ``triangles_drawn`` counter. Raises ``ValueError`` for unknown or bad
     options and non-finite concrete params."""
-    for name in ("morph_start", "morph_end"):
-        value = params[name]
-        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
-            raise ValueError(f"lod_cost: {name} must be finite, got {value!r}")
+    check_finite_params(params, ("morph_start", "morph_end"), "lod_cost")
     o = _checked(validate_options(TECHNIQUE, options))
     state = init_state(scene, **o) if state is None else state
     top, mesh, _, drawn = _frame_mesh(params, scene, state["height"], o)

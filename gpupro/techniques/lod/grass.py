@@ -101,14 +101,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import draw_generated, fbm_height, frame_buffers, frame_outputs, height_normals
+from gpupro.lod import TERRAIN_KEYS, draw_generated, frame_buffers, frame_outputs, height_normals, terrain_height
 from gpupro.numerics import dot3
 from gpupro.scene.materials import make_materials
-from gpupro.scene.mesh import Mesh
+from gpupro.scene.mesh import Mesh, concatenate_meshes
 from gpupro.scene.procedural import primitive_mesh
 from gpupro.sort import radix_sort
-from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique, integer,
-                              number, optional, outside_trace, register, validate_options)
+from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique,
+                              check_finite_params, integer, number, optional, outside_trace, register,
+                              validate_options)
 from gpupro.techniques.lights.deferred import shade_deferred
 
 BLADE_TYPES = (
@@ -154,17 +155,8 @@ class Blades(typing.NamedTuple):
     ground_faces: np.ndarray
 
 
-TERRAIN_KEYS = ("terrain_amplitude", "terrain_wavelength", "terrain_octaves", "terrain_seed", "terrain_elevation")
 GROWTH_KEYS = ("masters", "slaves_per_master", "knots", "field_size", "grass_seed", "blade_scale", "blade_width",
                "slave_perturbation", "ground_cells") + TERRAIN_KEYS
-
-
-def terrain_height(x, z, *, terrain_amplitude, terrain_wavelength, terrain_octaves, terrain_seed,
-                   terrain_elevation) -> jax.Array:
-    """Terrain height h (world units) at world ``x``, ``z`` (float arrays, any shape, one shape):
-    ``terrain_elevation`` + :func:`gpupro.lod.fbm_height`."""
-    return terrain_elevation + fbm_height(x, z, amplitude=terrain_amplitude, wavelength=terrain_wavelength,
-                                          octaves=terrain_octaves, seed=terrain_seed)
 
 
 def _grow(key) -> Blades:
@@ -476,23 +468,21 @@ def scenery_mesh(blades: Blades, centres, radii, *, ground: bool, draw_spheres: 
     """The ground grid of ``blades`` (with ``ground``; material 0) and the spheres at ``centres`` [K, 3] of
     ``radii`` [K] (with ``draw_spheres``; material 1) as one mesh (uv 0), the lawn without its blades;
     None when neither is drawn."""
+    def part(positions, faces, normals, material):
+        return Mesh(positions, jnp.asarray(faces, jnp.int32), normals, jnp.zeros((positions.shape[0], 2), jnp.float32),
+                    jnp.full(faces.shape[0], material, jnp.int32))
+
     parts = []
     if ground:
-        parts.append((jnp.asarray(blades.ground_positions), jnp.asarray(blades.ground_faces),
-                      jnp.asarray(blades.ground_normals), 0))
+        parts.append(part(jnp.asarray(blades.ground_positions), blades.ground_faces,
+                          jnp.asarray(blades.ground_normals), 0))
     if draw_spheres and centres.shape[0]:
         unit, faces = _unit_sphere()
         k, v = centres.shape[0], unit.shape[0]
         positions = (centres[:, None] + radii[:, None, None] * unit).reshape(-1, 3)
-        parts.append((positions, (faces[None] + v * np.arange(k)[:, None, None]).reshape(-1, 3),
-                      jnp.tile(jnp.asarray(unit), (k, 1)), 1))
-    if not parts:
-        return None
-    offsets = np.cumsum([0] + [p[0].shape[0] for p in parts[:-1]])
-    positions = jnp.concatenate([p[0] for p in parts])
-    return Mesh(positions, jnp.concatenate([jnp.asarray(p[1]) + o for p, o in zip(parts, offsets)]),
-                jnp.concatenate([p[2] for p in parts]), jnp.zeros((positions.shape[0], 2), jnp.float32),
-                jnp.concatenate([jnp.full(p[1].shape[0], p[3], jnp.int32) for p in parts]))
+        parts.append(part(positions, (faces[None] + v * np.arange(k)[:, None, None]).reshape(-1, 3),
+                          jnp.tile(jnp.asarray(unit), (k, 1)), 1))
+    return concatenate_meshes(parts) if parts else None
 
 
 def _lit(gbuffer, albedo, normal, scene, params) -> jax.Array:
@@ -667,10 +657,7 @@ def lod_cost(params, scene, **options) -> jax.Array:
     (defaults filled in); equals (1 + S) × the radix-sort count n as the temperature → 0 (away from bucket
     edges) and at 0. Raises ``ValueError`` for unknown options or non-finite concrete params."""
     options = validate_options(TECHNIQUE, options)
-    for name in ("lod_threshold", "lod_temperature"):
-        value = params[name]
-        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
-            raise ValueError(f"lod_cost: {name} must be finite, got {value!r}")
+    check_finite_params(params, ("lod_threshold", "lod_temperature"), "lod_cost")
     blades = _growth(options)
     _, _, _, _, weights = _lod(params, blades, jnp.asarray(blades.rest), scene.camera, options)
     return ((1 + options["slaves_per_master"]) * jnp.sum(weights)).astype(jnp.float32)
