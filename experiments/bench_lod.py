@@ -110,7 +110,7 @@ def time_technique(case: str, resolution, options: dict, *, repeats: int, warmup
 def time_grass_stages(resolution, options: dict, *, repeats: int, warmup: int) -> list[dict]:
     """The grass simulation step (every master, and the slave copies) and the LOD sort, each jitted alone."""
     values = grass._checked(validate_options(get("grass"), options))
-    blades = grass.grow_blades(**{k: values[k] for k in grass.GROWTH_KEYS})
+    blades = grass._growth(values)
     spheres, velocities = grass._sphere_arrays(values)
     terrain = {k: values[k] for k in grass.TERRAIN_KEYS}
     simulation = {k: values[k] for k in grass.SIMULATION_KEYS}

@@ -97,7 +97,7 @@ import optax
 from PIL import Image, ImageDraw, ImageFont
 
 from gpupro.config import (ConfigError, build_pipeline, build_scene, camera_path, check_config, check_table, choice_rule,
-                           integer_rule, number_rule, parse_override, read_config, string_rule, table_rule)
+                           describe_size, integer_rule, number_rule, parse_override, read_config, string_rule, table_rule)
 from gpupro.fit import OPTIMIZERS
 from gpupro.pipeline.batch import stack_cameras
 from gpupro.technique import OptionError, default_params
@@ -606,8 +606,7 @@ def run(experiment: Experiment, out_dir, *, say=print) -> dict:
 
 
 def describe(experiment: Experiment) -> str:
-    height, width = experiment.cameras[0].resolution
-    return f"{width}x{height}"
+    return describe_size(experiment.cameras[0].resolution)
 
 
 def main(argv=None) -> int:
