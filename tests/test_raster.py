@@ -168,6 +168,24 @@ def test_overflow_still_gives_reference_image():
     assert c["tile_triangle_pairs"] <= c["bbox_tile_pairs"]
 
 
+@pytest.mark.parametrize("tail_batch", [0, 5])
+def test_partial_chunks_pair_by_pair_or_as_chunks_give_the_reference_image(tail_batch):
+    # Both ways of resolving each tile's last, partial chunk (the CPU's default is pair by pair, other
+    # backends' is as a chunk), with lists long enough for full chunks too.
+    rng = np.random.default_rng(9)
+    clip, faces = random_soup(rng, 120)
+    tiled = rasterize(clip, faces, resolution=RES, tile_capacity=4, chunk_batch=7, tail_batch=tail_batch)
+    ref = reference(clip, faces, resolution=RES)
+    np.testing.assert_array_equal(np.asarray(tiled.triangle_id), np.asarray(ref.triangle_id))
+    np.testing.assert_array_equal(np.asarray(tiled.depth), np.asarray(ref.depth))
+    c = {k: int(v) for k, v in tiled.counters.items()}
+    if tail_batch:  # full chunks hold 4 pairs; the rest went one by one
+        assert c["tail_pairs"] > 0 and c["tile_chunks"] > 0
+        assert 4 * c["tile_chunks"] + c["tail_pairs"] == c["tile_triangle_pairs"]
+    else:
+        assert c["tail_pairs"] == 0 and 4 * c["tile_chunks"] > c["tile_triangle_pairs"]
+
+
 def test_equal_depth_goes_to_lower_triangle_id():
     quad = np.array([[-1, -1, 0, 1], [1, -1, 0, 1], [1, 1, 0, 1], [-1, 1, 0, 1]], np.float32)
     faces = np.array([[0, 1, 2], [0, 2, 3], [0, 1, 2], [0, 2, 3]])

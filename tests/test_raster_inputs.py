@@ -60,6 +60,8 @@ def expected_ids(name):
         (dict(resolution=RES, pair_capacity=0), r"^rasterize: pair_capacity must be"),
         (dict(resolution=RES, chunk_batch=-1), r"^rasterize: chunk_batch must be an integer >= 1 or None, got -1"),
         (dict(resolution=RES, chunk_batch=1.5), r"^rasterize: chunk_batch must be"),
+        (dict(resolution=RES, tail_batch=-1), r"^rasterize: tail_batch must be an integer >= 0 or None, got -1"),
+        (dict(resolution=RES, tail_batch=2.0), r"^rasterize: tail_batch must be"),
     ],
 )
 def test_bad_static_options_are_named(options, match, jit):

@@ -126,6 +126,13 @@ def _pad(clip: jax.Array, faces: jax.Array, valid: jax.Array) -> tuple[jax.Array
     return clip, faces, jnp.pad(valid, (0, padded_size(f) - f))
 
 
+def _check_tail_batch(value) -> int | None:
+    """``tail_batch``: an integer >= 0 or None, refused before JAX sees it."""
+    if value is None or (_is_int(value) and value >= 0):
+        return None if value is None else int(value)
+    raise ValueError(f"rasterize: tail_batch must be an integer >= 0 or None, got {value!r}")
+
+
 def _check_samples(samples) -> int:
     """A sample count of :data:`gpupro.raster.setup.SAMPLE_PATTERNS` (1, 2, 4 or 8), or ValueError."""
     if not _is_int(samples) or samples not in SAMPLE_PATTERNS:
@@ -146,12 +153,13 @@ def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -
 
 
 @functools.partial(jax.jit, static_argnames=("resolution", "samples", "cull_backfaces", "tile", "tile_capacity",
-                                              "pair_capacity", "chunk_batch"))
+                                              "pair_capacity", "chunk_batch", "tail_batch"))
 def _rasterize_padded(clip, faces, valid, *, resolution, samples, cull_backfaces, tile, tile_capacity, pair_capacity,
-                      chunk_batch) -> Fragments:
+                      chunk_batch, tail_batch) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
     triangle_id, depth, counters = rasterize_tiled(
-        setup, resolution=resolution, samples=samples, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity, chunk_batch=chunk_batch
+        setup, resolution=resolution, samples=samples, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity,
+        chunk_batch=chunk_batch, tail_batch=tail_batch
     )
     # Only the caller's valid faces: padding and replaced faces all read vertex 0, which may be NaN.
     counters["nonfinite_triangles"] = jnp.sum(~setup.finite & valid).astype(jnp.int32)
@@ -176,6 +184,7 @@ def rasterize(
     tile_capacity: int = 16,
     pair_capacity: int | None = None,
     chunk_batch: int | None = None,
+    tail_batch: int | None = None,
 ) -> Fragments:
     """Rasterizes triangles with the tiled rasterizer.
 
@@ -194,11 +203,15 @@ def rasterize(
         several passes (static; None: from F and the tile count).
       chunk_batch: tile chunks resolved per step, >= 1 or None (static; None: the number of tiles,
         divided by ``samples``).
+      tail_batch: each tile's last, partial chunk is resolved pair by pair, this many (triangle, tile)
+        pairs a step, >= 0 or None; 0 resolves it as a chunk like the others (static; None: the
+        number of tiles on the CPU, where lightly loaded tiles would waste most of a chunk, and 0
+        on other backends, where each step of the extra loop costs a round trip to the host).
 
     Returns:
       :class:`Fragments`. Nothing is dropped when a capacity is exceeded: the excess is processed
       in further passes, and ``counters`` reports it (``pair_overflow``, ``tile_overflow_pairs``,
-      ``tiles_overflowed``, ``binning_passes``, ``tile_chunks``). Works under ``jax.jit``. Faces
+      ``tiles_overflowed``, ``binning_passes``, ``tile_chunks``, ``tail_pairs``). Works under ``jax.jit``. Faces
       with an index outside [0, V) are never drawn and ``counters["invalid_faces"]`` counts them,
       with concrete inputs and under ``jit`` alike. NaN/inf positions raise ``ValueError`` with
       concrete inputs; under ``jit`` such triangles are not drawn and
@@ -212,6 +225,7 @@ def rasterize(
     tile_capacity = _check_option("tile_capacity", tile_capacity)
     pair_capacity = _check_option("pair_capacity", pair_capacity, optional=True)
     chunk_batch = _check_option("chunk_batch", chunk_batch, optional=True)
+    tail_batch = _check_tail_batch(tail_batch)
     num_faces = faces.shape[0]
     faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
     num_tiles = -(-resolution[0] // tile) * -(-resolution[1] // tile)
@@ -227,6 +241,7 @@ def rasterize(
         tile_capacity=tile_capacity,
         pair_capacity=pair_capacity or default_pair_capacity(faces.shape[0], num_tiles),
         chunk_batch=chunk_batch or max(1, num_tiles // samples),
+        tail_batch=num_tiles if tail_batch is None and jax.default_backend() == "cpu" else tail_batch or 0,
     )
     return frags._replace(counters=dict(frags.counters, triangles=jnp.int32(num_faces), invalid_faces=invalid))
 

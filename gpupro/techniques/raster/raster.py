@@ -43,10 +43,11 @@ def _fragment_buffers(fragments) -> dict:
     return {name: getattr(fragments, name) for name in FRAGMENT_NAMES}
 
 
-def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch):
+def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch,
+                tail_batch):
     """Tiled rasterization of ``scene.mesh`` from ``scene.camera`` → fragment buffers [H, W(, S)(, 3)]."""
     fragments = rasterize_scene(scene, samples=samples, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity,
-                                pair_capacity=pair_capacity, chunk_batch=chunk_batch)
+                                pair_capacity=pair_capacity, chunk_batch=chunk_batch, tail_batch=tail_batch)
     return _fragment_buffers(fragments), fragments.counters
 
 
@@ -79,6 +80,8 @@ register(Technique(
         Option("tile_capacity", 16, integer(1), "triangles resolved per tile chunk"),
         Option("pair_capacity", None, optional(integer(1)), "(triangle, tile) pairs per binning pass; none: from F and the tile count"),
         Option("chunk_batch", None, optional(integer(1)), "tile chunks resolved per step; none: the number of tiles divided by samples"),
+        Option("tail_batch", None, optional(integer(0)), "pairs of each tile's last, partial chunk resolved one by one per step "
+                                                         "(0: as a chunk); none: the number of tiles on CPUs, 0 elsewhere"),
     ),
     capacities=(
         Capacity("tile_capacity", "tiles_overflowed", "tiles holding more triangles take several chunks", lossy=False),
