@@ -8,7 +8,7 @@ import gpupro as gp
 from gpupro.scene import POINT, SPOT, make_camera, make_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.scene.procedural import DOORS, ROOMS
-from gpupro.scene.sectors import make_sectors, sector_rects
+from gpupro.scene.sectors import Sectors, make_sectors, sector_rects
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, shade_deferred
 from gpupro.techniques.lights.stalker import cull_lights, shade_stalker
@@ -151,5 +151,7 @@ def test_bad_layouts_and_options_are_refused():
         make_sectors([(0, 0, 0, 1, 1, 1), (1, 0, 0, 2, 1, 1)], [(0, 1, [(1, 0, 0)] * 3)])
     with pytest.raises(ValueError, match="sectors: expected none, a layout name"):
         gp.make_pass("stalker", sectors="attic")
+    with pytest.raises(ValueError, match="sectors: expected none, a layout name"):
+        gp.make_pass("stalker", sectors=Sectors(boxes=((1.0, 0.0, 0.0, 0.0, 1.0, 1.0),), portals=()))
     assert gp.make_pass("stalker", sectors="rooms").options["sectors"] == "rooms"
     assert gp.make_pass("stalker", sectors=LAYOUT).options["sectors"] == LAYOUT

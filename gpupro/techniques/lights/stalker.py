@@ -106,7 +106,7 @@ from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_phong
 from gpupro.scene.procedural import SECTOR_LAYOUTS
-from gpupro.scene.sectors import Sectors, rects_overlap, sector_box_arrays, sector_rects
+from gpupro.scene.sectors import Sectors, make_sectors, rects_overlap, sector_box_arrays, sector_rects
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, transform_lights
 from gpupro.shading.light_falloff import incident_light, representative_points
 from gpupro.shading.light_loop import (
@@ -472,8 +472,9 @@ def sector_layout(*, sectors):
     return SECTOR_LAYOUTS[sectors]() if isinstance(sectors, str) else sectors
 
 
-SECTORS_OPTION = Check(lambda v: v is None or isinstance(v, Sectors) or (isinstance(v, str) and v in SECTOR_LAYOUTS),
-                       f"none, a layout name ({', '.join(SECTOR_LAYOUTS)}) or a gpupro.scene.sectors.Sectors")
+SECTORS_OPTION = Check(lambda v: v is None or (isinstance(v, str) and v in SECTOR_LAYOUTS)
+                       or (isinstance(v, Sectors) and make_sectors(v.boxes, v.portals) == v),
+                       f"none, a layout name ({', '.join(SECTOR_LAYOUTS)}) or a valid gpupro.scene.sectors.Sectors")
 
 
 def apply(params, inputs, scene, *, distribution, light_chunk, light_capacity, material_model, lut_n_dot_l, lut_n_dot_h,
