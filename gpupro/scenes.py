@@ -15,6 +15,8 @@ from gpupro.scene.procedural import (
     cornell_box,
     plane,
     primitive_mesh,
+    rooms,
+    rooms_sectors,
     sphere,
     street_canyon,
     terrain,

@@ -16,6 +16,7 @@ EXPECTED_TRIANGLES = {
     "box": ({}, 12, 12),
     "cornell_box": ({}, 36, 36),
     "plane": ({}, 2, 2),
+    "rooms": ({}, 204, 204),
     "sphere": ({}, 2 * 32 * 15, 2 * 32 * 15),
     "street_canyon": ({}, 2 + 24 * 10, 2 + 24 * 10),
     "terrain": ({}, 2 * 64 * 64, 2 * 64 * 64),

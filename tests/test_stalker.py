@@ -71,8 +71,8 @@ def test_stalker_equals_brute_force_and_counts_its_stencil(name):
     slow, slow_counters = brute(GBUFFER, lights, CAMERA.eye, **OPTIONS)
     assert_same(np.asarray(fast), np.asarray(slow))
     assert int(counters["light_list_overflow"]) == 0
-    culled = sum(int(counters[f"lights_culled_{stage}"]) for stage in ("frustum", "hiz", "query"))
-    assert culled + int(counters["surviving_lights"]) == lights.count
+    culled = sum(int(counters[f"lights_culled_{stage}"]) for stage in ("frustum", "portal", "hiz", "query"))
+    assert culled + int(counters["surviving_lights"]) == lights.count and int(counters["lights_culled_portal"]) == 0
     reach = reaching(lights)
     lighting, exact = float(counters["lighting_computations"]), float(counters["exact_lighting_computations"])
     assert exact == float(reach.sum()), "no light reaching a covered pixel is culled"

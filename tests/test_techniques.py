@@ -63,18 +63,20 @@ their capacities and gradients are the wrapped pass's, so those cases run with `
 
 
 EAGER_SLOW = {"light_linked_list", "tiled_culling", "tiled_culling_forward", "tiled_forward", "clustered_deferred",
-              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer", "tiled_deferred"}
+              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer", "tiled_deferred", "edge_aa"}
 """Passes whose op-by-op run compiles every primitive of long per-tile, per-cluster or per-light scan
 bodies one by one (35–90 s each on the 2-core CPU), and the rasterizer's passes (10 s each; the
 rasterizer's own tests compare jit and eager): their jit-against-eager case runs with ``-m slow`` only.
 ``deferred`` keeps the shared light loop's eager run in the default suite (``tiled_deferred``'s, 18 s,
-runs the same loop)."""
+runs the same loop). ``edge_aa``'s own tests compare jit and eager on synthetic G-buffers (here the case
+compiles the passes producing its inputs, 25 s)."""
 
 
-GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred"}
+GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred", "edge_aa"}
 """Culling passes whose gradients flow through the shared light loop only (culling is discontinuous in
 the lights), as those of ``deferred`` do in the default suite: their gradient cases (17–30 s each on
-the 2-core CPU) run with ``-m slow``."""
+the 2-core CPU) run with ``-m slow``; and ``edge_aa``, whose own tests check its parameters' gradients
+on synthetic G-buffers (here the case differentiates through the passes producing its inputs, 28 s)."""
 
 
 def _cases(cases, *, slow=frozenset()):

@@ -481,6 +481,97 @@ def terrain(
     return _scene(mesh, materials, lights, default, camera)
 
 
+ROOMS = ((0.0, 0.0, 0.0, 6.0, 3.0, 6.0), (0.0, 0.0, 6.0, 6.0, 3.0, 12.0), (6.0, 0.0, 6.0, 12.0, 3.0, 12.0),
+         (6.0, 0.0, 0.0, 12.0, 3.0, 6.0))
+"""The boxes (x0, y0, z0, x1, y1, z1) of :func:`rooms`: A (the camera's), B, C, and D (sealed)."""
+
+DOORS = ((0, 1, (2.5, 0.0, 6.0), (3.5, 2.2, 6.0)), (1, 2, (6.0, 0.0, 9.0), (6.0, 2.2, 10.0)))
+"""The door openings of :func:`rooms`: (room a, room b, lo, hi), flat along one axis (lo = hi there)."""
+
+
+def _door_corners(lo, hi):
+    """The 4 corners, in order around it, of a flat axis-aligned rectangle [lo, hi] (lo = hi on one axis)."""
+    flat = next(k for k in range(3) if lo[k] == hi[k])
+    u, v = (flat + 1) % 3, (flat + 2) % 3
+    corners = []
+    for cu, cv in ((lo[u], lo[v]), (hi[u], lo[v]), (hi[u], hi[v]), (lo[u], hi[v])):
+        corner = list(lo)
+        corner[u], corner[v] = cu, cv
+        corners.append(tuple(corner))
+    return tuple(corners)
+
+
+def _room_shells(rooms, doors):
+    """The walls, floors and ceilings of axis-aligned ``rooms`` joined by ``doors`` (as :data:`ROOMS`,
+    :data:`DOORS`): (walls, floors, ceilings) lists of quads. Space is cut into the grid of every room's and
+    door's bounds; each grid face between two cells of different rooms (or a room and the outside) is a
+    quad, except inside a door. Quads are whole grid faces, so neighbours share whole edges (no T-junctions:
+    the rasterizer leaves no crack between them) and a face between rooms is one two-sided quad."""
+    boxes = np.asarray(rooms, np.float64)
+    bounds = [np.concatenate([boxes[:, k], boxes[:, k + 3]] + [[d[2][k], d[3][k]] for d in doors]) for k in range(3)]
+    cuts = [np.unique(b) for b in bounds]
+    centres = [0.5 * (c[1:] + c[:-1]) for c in cuts]
+
+    def room_of(point):
+        inside = np.all((boxes[:, :3] <= point) & (point <= boxes[:, 3:]), axis=1)
+        return int(np.argmax(inside)) if inside.any() else -1
+
+    walls, floors, ceilings = [], [], []
+    for axis in range(3):
+        u, v = (axis + 1) % 3, (axis + 2) % 3
+        for plane in cuts[axis]:
+            for cu0, cu1, mu in zip(cuts[u][:-1], cuts[u][1:], centres[u]):
+                for cv0, cv1, mv in zip(cuts[v][:-1], cuts[v][1:], centres[v]):
+                    middle = np.zeros(3)
+                    middle[axis], middle[u], middle[v] = plane, mu, mv
+                    step = np.eye(3)[axis] * 1e-6
+                    below, above = room_of(middle - step), room_of(middle + step)
+                    in_door = any({below, above} == {a, b} and np.all((np.minimum(lo, hi) <= middle) & (middle <= np.maximum(lo, hi)))
+                                  for a, b, lo, hi in doors)
+                    if below == above or in_door:
+                        continue
+                    origin = np.zeros(3)
+                    origin[axis], origin[u], origin[v] = plane, cu0, cv0
+                    edge_u, edge_v = np.eye(3)[u] * (cu1 - cu0), np.eye(3)[v] * (cv1 - cv0)
+                    # facing +axis into the room above it, else -axis into the room below
+                    quad = _quad(origin, edge_u, edge_v) if above >= 0 else _quad(origin, edge_v, edge_u)
+                    target = walls if axis != 1 else (floors if above >= 0 and below < 0 else ceilings)
+                    target.append(quad)
+    return walls, floors, ceilings
+
+
+def rooms_sectors():
+    """The sector-portal layout of :func:`rooms` (:class:`gpupro.scene.sectors.Sectors`): its rooms as
+    sectors, its doors as portals."""
+    from gpupro.scene.sectors import make_sectors
+
+    return make_sectors(ROOMS, [(a, b, _door_corners(lo, hi)) for a, b, lo, hi in DOORS])
+
+
+def rooms(*, resolution=DEFAULT_RESOLUTION, lights: Lights | None = None) -> Scene:
+    """Four closed rooms 6 × 3 × 6 units (x × y × z) in a 2 × 2 block, for sector-portal culling.
+
+    A (x, z ∈ [0, 6]) holds the camera; a door 1 × 2.2 in the wall z = 6 leads to B (z ∈ [6, 12]), and one
+    in the wall x = 6 of B to C (x ∈ [6, 12], z ∈ [6, 12]); D (x ∈ [6, 12], z ∈ [0, 6]) is sealed. Walls
+    are single quads (two-sided; no thickness) on the rooms' faces, so the rooms are the sectors and the
+    doors the portals of :func:`rooms_sectors` exactly; a crate stands in each room. Materials: 0 walls,
+    1 floors, 2 ceilings, 3 crates. The camera stands in A's corner looking diagonally across it (90°
+    field of view): through the door into B, and with D in the frustum behind A's wall x = 6 (C is not
+    seen). Default lights: 2 point lights per room, range 2.5 (D's reach no other room).
+    """
+    walls, floors, ceilings = _room_shells(ROOMS, DOORS)
+    crates = [_box((3.8, 0.0, 2.8), (4.8, 1.0, 3.8)), _box((1.0, 0.0, 8.0), (2.0, 1.2, 9.0)),
+              _box((9.0, 0.0, 8.0), (10.0, 1.0, 9.0)), _box((8.0, 0.0, 2.0), (9.0, 1.5, 3.0))]
+    mesh = _mesh([walls, floors, ceilings, crates], source="rooms")
+    materials = make_materials([[0.7, 0.68, 0.62], [0.45, 0.4, 0.35], [0.8, 0.8, 0.8], [0.55, 0.35, 0.2]],
+                               roughness=[0.85, 0.7, 0.9, 0.6])
+    camera = make_camera((0.5, 1.6, 0.5), (6.0, 1.2, 6.0), fov_y_degrees=90.0, near=0.05, far=30.0, resolution=resolution)
+    positions = [[4.5, 2.5, 2.0], [1.5, 2.5, 4.5], [3.0, 2.5, 9.0], [1.0, 2.5, 11.0], [9.0, 2.5, 9.0], [11.0, 2.5, 7.0],
+                 [9.0, 1.5, 3.0], [10.5, 1.5, 2.5]]
+    default = lambda: point_lights(positions, np.full((8, 3), 3.0), 2.5)
+    return _scene(mesh, materials, lights, default, camera)
+
+
 def _fbm(x: np.ndarray, octaves: int, seed: int) -> np.ndarray:
     """fBm value noise on the grid x × x (x [N] in [0, 1]), normalised to [-1, 1]: [N, N]."""
     rng = np.random.default_rng(seed)
@@ -502,12 +593,16 @@ SCENES = {
     "box": box,
     "cornell_box": cornell_box,
     "plane": plane,
+    "rooms": rooms,
     "sphere": sphere,
     "street_canyon": street_canyon,
     "terrain": terrain,
     "torus": torus,
 }
 """Procedural scenes by name; each takes keyword options only, including ``resolution`` and ``lights``."""
+
+SECTOR_LAYOUTS = {"rooms": rooms_sectors}
+"""Sector-portal layouts of the procedural scenes, by scene name (S.T.A.L.K.E.R.'s ``sectors`` option)."""
 
 
 def by_name(name: str, **options) -> Scene:

@@ -8,9 +8,10 @@ chapter renders "only those lights that actually affect the final image, and for
 the affected pixels", culling in four stages of increasing cost. Here each stage is a conservative
 array test (it never removes a light that reaches a covered sample), with its counter:
 
-1. visibility (the chapter's sector-portal culling; the scenes have no portals, so this stage is the
-   view frustum): in view space, light i is culled when for one of the six frustum planes (unit
-   normal u_k pointing inwards, offset δ_k, from the rows of the projection matrix, Gribb–Hartmann)
+1. visibility: the view frustum, then the chapter's sector-portal culling where the level has a
+   sector-portal layout (option ``sectors``). Frustum: in view space, light i is culled when for one of
+   the six frustum planes (unit normal u_k pointing inwards, offset δ_k, from the rows of the projection
+   matrix, Gribb–Hartmann)
        h_i(u_k) + δ_k < 0,
    where h_i(u) = max_{x ∈ V_i} u·x is the support function of the light's true volume V_i:
        point (ball, centre p, range r):            h(u) = u·p + r
@@ -20,7 +21,17 @@ array test (it never removes a light that reaches a covered sample), with its co
        directional:                                 h(u) = +∞
    (the sector's farthest point along u lies on the generator nearest to u, at distance r, or is
    the apex; a capsule is the segment ⊕ a ball, whose support functions add), so spots are culled as
-   cones and capsules as capsules, not as spheres;
+   cones and capsules as capsules, not as spheres. Sectors and portals (:mod:`gpupro.scene.sectors`:
+   sectors are boxes B_k, portals quadrilaterals between two of them; the chapter gives no algorithm,
+   so this is the classic traversal narrowing a screen rectangle R_k through each portal, K − 1 fixed
+   steps): a light surviving the frustum is culled when no sector k has
+       R_k ≠ ∅,   V_i ∩ B_k ≠ ∅   (:func:`gpupro.shading.light_bounds.box_meets_light`)   and   R_k ∩ r_i ≠ ∅,
+   r_i its pixel rectangle (stage 2's). The chapter's lights are tested by the sector they stand in;
+   here they are tested by their volume, because the shading, as brute force, has no walls: a light
+   behind a wall lights the visible side of it, and a sealed room's light is culled only when its
+   volume stays in the room. Conservative when walls block sight everywhere on the sectors' faces but
+   at the portals and the near-plane rectangle lies within the sectors (the layout's duty): every
+   covered sample then lies in a box B_k with its pixel centre in R_k;
 2. occlusion against a hierarchical max-depth buffer (the chapter's CPU occlusion culling "similar to
    the hierarchical z-buffer", Greene et al. 1993): Z_0 = the view depth of covered pixels, +∞ at empty
    pixels (sky never occludes); Z_{k+1} = max over 2 × 2 texels of Z_k. Light i's pixel rectangle
@@ -41,7 +52,8 @@ array test (it never removes a light that reaches a covered sample), with its co
    reaches_i the exact volume test (:func:`gpupro.shading.light_loop.light_reaches`), l_i towards the
    light's representative point (a capsule's nearest segment point), n·l_i > 0 the back-facing test
    that the chapter's sun pre-pass (Listing 9-1) applies to the sun (sky pixels are not covered; the
-   ambient-occlusion test (N·L)·AO > 0 has AO ≡ 1: the G-buffer stores no AO). Only masked pixels are
+   ambient-occlusion test (N·L)·AO > 0 has AO ≡ 1: the G-buffer stores no AO, and no pass of the
+   project produces a per-pixel AO). Only masked pixels are
    shaded, with the per-light arithmetic of brute force
    (:func:`gpupro.shading.light_loop.light_radiance`):
        L_o(x) = L_e + L_a · (1 − m) · c + Σ_{i ∈ list} mask_i(x) · f(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i
@@ -72,8 +84,8 @@ covered pixel, the stages being conservative); the back-facing pairs make lighti
 stencil is finer than the light volume); ``false_positive_rate`` = 1 − exact / (covered pixels × listed
 lights), the share of the survivors' full-screen passes that the light does not reach (the culling
 stages' false positives, which the stencil masks: the stencil itself, exact per pixel, has none);
-``lights_culled_frustum``, ``lights_culled_hiz``, ``lights_culled_query`` (lights removed at each stage,
-among those that reached it), ``query_pixels`` (Σ of the query counts of the lights queried),
+``lights_culled_frustum``, ``lights_culled_portal``, ``lights_culled_hiz``, ``lights_culled_query`` (lights
+removed at each test, among those that reached it), ``query_pixels`` (Σ of the query counts of the lights queried),
 ``surviving_lights``; the chapter's statistics: ``lights_per_pixel`` (mean shaded lights per covered
 pixel; 5 in the game's closed spaces), ``sky_fraction`` (uncovered pixels) and ``sun_shaded_fraction``
 (pixels the directional lights shade, over directional lights × pixels; the chapter's
@@ -93,13 +105,15 @@ from gpupro.numerics import einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_phong
-from gpupro.shading.light_bounds import SLACK, light_spheres, transform_lights
+from gpupro.scene.procedural import SECTOR_LAYOUTS
+from gpupro.scene.sectors import Sectors, make_sectors, rects_overlap, sector_box_arrays, sector_rects
+from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, transform_lights
 from gpupro.shading.light_falloff import incident_light, representative_points
 from gpupro.shading.light_loop import (
     check_shading_inputs, compose_radiance, default_light_chunk, light_radiance, light_reaches, surface_terms,
     view_directions,
 )
-from gpupro.technique import Capacity, Counter, Option, Technique, integer, number, one_of, register
+from gpupro.technique import Capacity, Check, Counter, Option, Technique, integer, number, one_of, register
 from gpupro.techniques.lights.deferred import (
     DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW,
 )
@@ -150,6 +164,17 @@ def depth_extents(view_lights: Lights):
     volume, from its support along ±z (±inf for directional lights)."""
     support = light_support(view_lights, jnp.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]]))
     return jnp.stack([-support[:, 0], support[:, 1]], axis=1)
+
+
+def through_portals(lights: Lights, rect, camera: Camera, *, sectors: Sectors):
+    """Stage 1's sector-portal test: bool [N], False where no sector k that the camera sees into (narrowed
+    screen rectangle R_k ≠ ∅, :func:`gpupro.scene.sectors.sector_rects`) both meets light i's volume and has
+    R_k overlapping the light's pixel rectangle ``rect`` [N, 4] (:func:`screen_bounds`). ``sectors``
+    static; the lights in world space."""
+    lower, upper = sector_box_arrays(sectors=sectors)
+    seen = sector_rects(camera, sectors=sectors)  # [K, 4]
+    overlap = rects_overlap(seen[:, None, :], rect[None, :, :])  # [K, N]
+    return jnp.any(box_meets_light(lower, upper, lights) & overlap, axis=0)
 
 
 # --- stage 2: hierarchical max depth -------------------------------------------------------------
@@ -231,19 +256,23 @@ def occlusion_query(view_depth, coverage, spans, empty, extent, *, light_chunk: 
     return jax.lax.map(query, (spans, empty, extent), batch_size=light_chunk or default_light_chunk())
 
 
-def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, light_chunk: int | None):
+def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, light_chunk: int | None,
+                sectors: Sectors | None = None):
     """Stages 1–3 of the module docstring. ``view_depth``, ``coverage`` [H, W]; ``light_chunk`` (static)
-    lights per query step. Returns a dict of bool [N] ``frustum``, ``hiz``, ``query`` (kept after each
-    stage, cumulative) and int32 [N] ``query_pixels`` (stage 3's counts)."""
+    lights per query step; ``sectors`` (static) the level's sector-portal layout, or None (stage 1 is the
+    frustum alone). Returns a dict of bool [N] ``frustum``, ``portal``, ``hiz``, ``query`` (kept after each
+    test, cumulative) and int32 [N] ``query_pixels`` (stage 3's counts)."""
     view_lights = transform_lights(lights, camera.view_matrix())
     extent = depth_extents(view_lights)
     frustum = in_frustum(view_lights, frustum_planes(camera))
     rect, _ = screen_bounds(*light_spheres(lights), camera)
+    portal = frustum if sectors is None else frustum & through_portals(lights, rect, camera, sectors=sectors)
     spans, empty = pixel_spans(rect, jnp.shape(coverage))
     z_max = hiz_max_depth(max_depth_pyramid(view_depth, coverage), spans, empty)
-    hiz = frustum & (widened(extent)[:, 0] <= z_max)
+    hiz = portal & (widened(extent)[:, 0] <= z_max)
     query_pixels = occlusion_query(view_depth, coverage, spans, empty, extent, light_chunk=light_chunk)
-    return {"frustum": frustum, "hiz": hiz, "query": hiz & (query_pixels > 0), "query_pixels": query_pixels}
+    return {"frustum": frustum, "portal": portal, "hiz": hiz, "query": hiz & (query_pixels > 0),
+            "query_pixels": query_pixels}
 
 
 # --- material lookup table ------------------------------------------------------------------------
@@ -376,10 +405,11 @@ def shade_masked(surface: dict, light_list, lights: Lights, camera: Camera, *, s
 def stage_counters(stages: dict, survivors, capacity: int, lights: Lights) -> dict:
     """The per-stage counters (module docstring) of :func:`cull_lights`' ``stages``; ``survivors``
     int32 count before truncation; ``capacity`` (static) list slots."""
-    frustum, hiz, query = stages["frustum"], stages["hiz"], stages["query"]
+    frustum, portal, hiz, query = stages["frustum"], stages["portal"], stages["hiz"], stages["query"]
     return {
         "lights_culled_frustum": jnp.sum(~frustum, dtype=jnp.int32),
-        "lights_culled_hiz": jnp.sum(frustum & ~hiz, dtype=jnp.int32),
+        "lights_culled_portal": jnp.sum(frustum & ~portal, dtype=jnp.int32),
+        "lights_culled_hiz": jnp.sum(portal & ~hiz, dtype=jnp.int32),
         "lights_culled_query": jnp.sum(hiz & ~query, dtype=jnp.int32),
         "query_pixels": jnp.sum(jnp.where(hiz, stages["query_pixels"], 0)),
         "surviving_lights": survivors,
@@ -391,7 +421,7 @@ def stage_counters(stages: dict, survivors, capacity: int, lights: Lights) -> di
 
 def shade_stalker(surface: dict, view_depth, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                   distribution: str, light_chunk: int | None, light_capacity: int, material_model: str, lut_n_dot_l: int,
-                  lut_n_dot_h: int, lut_layers: int, lut_min_roughness: float):
+                  lut_n_dot_h: int, lut_layers: int, lut_min_roughness: float, sectors: Sectors | None = None):
     """S.T.A.L.K.E.R. deferred shading of per-pixel surfaces: cull in stages, shade the survivors'
     stencil-masked pixels (module docstring).
 
@@ -400,14 +430,15 @@ def shade_stalker(surface: dict, view_depth, lights: Lights, camera: Camera, *, 
     ``camera`` the scene camera; ``ambient``, ``background`` [3] radiance; ``shadow`` None or [H, W, K];
     static: ``distribution``, ``light_chunk`` (lights per scan step), ``light_capacity`` (slots of the
     survivor list), ``material_model`` ("analytic" or "lut") and the table's ``lut_n_dot_l``, ``lut_n_dot_h``,
-    ``lut_layers`` sizes and ``lut_min_roughness``. Returns ``(hdr float32 [H, W, 3], counters)``.
+    ``lut_layers`` sizes and ``lut_min_roughness``, ``sectors`` the sector-portal layout or None (no portal
+    culling). Returns ``(hdr float32 [H, W, 3], counters)``.
     """
     if material_model not in MATERIAL_MODELS:
         raise ValueError(f"shade_stalker: material_model must be one of {MATERIAL_MODELS}, got {material_model!r}")
     coverage = jnp.asarray(surface["coverage"])
     check_shading_inputs(lights, None if shadow is None else jnp.shape(shadow), coverage.shape,
                          distribution=distribution, light_chunk=light_chunk, caller="shade_stalker")
-    stages = cull_lights(lights, camera, view_depth, coverage, light_chunk=light_chunk)
+    stages = cull_lights(lights, camera, view_depth, coverage, light_chunk=light_chunk, sectors=sectors)
     lists, counts = fill_light_lists(stages["query"][None], min(light_capacity, lights.count))
     lut = None if material_model == "analytic" else material_lut(n_dot_l=lut_n_dot_l, n_dot_h=lut_n_dot_h, layers=lut_layers,
                                                              min_roughness=lut_min_roughness)
@@ -435,14 +466,26 @@ def shade_stalker(surface: dict, view_depth, lights: Lights, camera: Camera, *, 
     return hdr, counters
 
 
+def sector_layout(*, sectors):
+    """The ``sectors`` option as a :class:`Sectors` or None: a layout name is looked up in
+    :data:`gpupro.scene.procedural.SECTOR_LAYOUTS`."""
+    return SECTOR_LAYOUTS[sectors]() if isinstance(sectors, str) else sectors
+
+
+SECTORS_OPTION = Check(lambda v: v is None or (isinstance(v, str) and v in SECTOR_LAYOUTS)
+                       or (isinstance(v, Sectors) and make_sectors(v.boxes, v.portals) == v),
+                       f"none, a layout name ({', '.join(SECTOR_LAYOUTS)}) or a valid gpupro.scene.sectors.Sectors")
+
+
 def apply(params, inputs, scene, *, distribution, light_chunk, light_capacity, material_model, lut_n_dot_l, lut_n_dot_h,
-          lut_layers, lut_min_roughness):
+          lut_layers, lut_min_roughness, sectors):
     """S.T.A.L.K.E.R. deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     hdr, counters = shade_stalker({key: inputs[key] for key in DEFERRED_INPUTS}, inputs["view_depth"], scene.lights,
                                   scene.camera, ambient=params["ambient"], background=params["background"],
                                   shadow=inputs.get("shadow"), distribution=distribution, light_chunk=light_chunk,
                                   light_capacity=light_capacity, material_model=material_model, lut_n_dot_l=lut_n_dot_l,
-                                  lut_n_dot_h=lut_n_dot_h, lut_layers=lut_layers, lut_min_roughness=lut_min_roughness)
+                                  lut_n_dot_h=lut_n_dot_h, lut_layers=lut_layers, lut_min_roughness=lut_min_roughness,
+                                  sectors=sector_layout(sectors=sectors))
     return {"hdr": hdr}, counters
 
 
@@ -464,6 +507,8 @@ register(Technique(
         Option("lut_n_dot_h", 256, integer(2), "N·H samples of the material table (256 in the game)"),
         Option("lut_layers", 4, integer(1), "material layers of the table, by increasing shininess (4 in the game)"),
         Option("lut_min_roughness", 0.4, number(0.05, 0.95), "roughness of the shiniest layer (smoother materials get it)"),
+        Option("sectors", None, SECTORS_OPTION, "the level's sector-portal layout for stage 1 (a procedural scene's "
+                                                "name, e.g. rooms, or a Sectors value); none: the frustum alone"),
     ),
     params=SHADING_PARAMS,
     capacities=(Capacity("light_capacity", "light_list_overflow", "lights surviving the culling; the excess is dropped",
@@ -474,6 +519,8 @@ register(Technique(
                                        "that the stencil masks because the light does not reach the pixel (0 when none)"),
         Counter("light_list_bytes", "bytes of the survivor list (4 × slots)"),
         Counter("lights_culled_frustum", "stage 1: lights whose volume lies outside the view frustum"),
+        Counter("lights_culled_portal", "stage 1: lights in the frustum whose volume meets no sector seen through "
+                                        "the portals within its screen rectangle (0 without sectors)"),
         Counter("lights_culled_hiz", "stage 2: lights behind the hierarchical max depth of their screen rectangle"),
         Counter("lights_culled_query", "stage 3: lights whose occlusion query counted no pixel in their depth extent"),
         Counter("query_pixels", "Σ over the lights queried of the pixels their query counted"),
@@ -484,12 +531,14 @@ register(Technique(
         Counter("sun_shaded_fraction", "pixels shaded by directional lights / (directional lights × pixels); 0 without"),
     ) + SHADING_COUNTERS[1:],
     reference="deferred",
-    notes=("Missing from chapter 9: sector-portal culling (no portals in the scenes; stage 1 is the view "
-           "frustum), the ambient-occlusion term of the sun's stencil test (no AO in the G-buffer: AO ≡ 1), "
-           "shadows of its own (six-spotlight omni shadows, PCF sun; a shadow-map pass's `shadow` is used as "
-           "given), virtual position, the edge-detect antialiasing, the bloom/adaptation tone mapping, "
+    notes=("Missing from chapter 9: the ambient-occlusion term of the sun's stencil test (no pass produces a "
+           "per-pixel AO: AO ≡ 1), shadows of its own (six-spotlight omni shadows, PCF sun; a shadow-map pass's "
+           "`shadow` is used as given), virtual position, the bloom/adaptation tone mapping, "
            "transparency, material and object IDs beyond roughness/metallic, and light-volume rasterization "
            "(the screen rectangles are the projected bounding cube of each bounding sphere; the stencil "
            "mask is the exact per-pixel volume test). The material table holds a Blinn–Phong lobe, not "
-           "the project's BRDF, so `material_model = \"lut\"` differs from brute force."),
+           "the project's BRDF, so `material_model = \"lut\"` differs from brute force. Sector-portal culling needs "
+           "a layout (option `sectors`; the procedural `rooms` scene has one) whose walls block sight everywhere "
+           "but at its portals: that is the layout's duty, not checked against the mesh. The chapter's edge-detect "
+           "antialiasing is its own pass, `edge_aa`."),
 ))

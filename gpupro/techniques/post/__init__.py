@@ -1,1 +1,1 @@
-"""Post-processing passes: exposure, tone mapping and sRGB encoding."""
+"""Post-processing passes: exposure, tone mapping and sRGB encoding; edge-detect antialiasing."""
