@@ -81,7 +81,7 @@ register(Technique(
         Option("pair_capacity", None, optional(integer(1)), "(triangle, tile) pairs per binning pass; none: from F and the tile count"),
         Option("chunk_batch", None, optional(integer(1)), "tile chunks resolved per step; none: the number of tiles divided by samples"),
         Option("tail_batch", None, optional(integer(0)), "pairs of each tile's last, partial chunk resolved one by one per step "
-                                                         "(0: as a chunk); none: the number of tiles on CPUs, 0 elsewhere"),
+                                                         "(0: as a chunk); none: the number of tiles on CPUs from 1,024 tiles, else 0"),
     ),
     capacities=(
         Capacity("tile_capacity", "tiles_overflowed", "tiles holding more triangles take several chunks", lossy=False),
