@@ -17,10 +17,16 @@ space (camera at the origin looking down −z, view depth d = −z):
    ``normal_bins`` = X > 0 the key also holds the sample's normal direction: the cube face of its major
    axis and an X × X grid on that face (Fig. 4; 6X² bins, X = 3 gives the paper's 54). Packed
    key = ((k · 6X² + bin) · S_y + j) · S_x + i in an int32 (k clamped to the largest slice that fits).
-2. Occupied clusters: the keys are sorted and each one without an identical predecessor starts a
-   cluster (sort + compaction, the paper's Fig. 5); its rank is the cluster index, written back to its
-   pixels. Clusters past ``cluster_capacity`` are dropped and counted (``cluster_overflow``; the entry
-   points grow the capacity to ``clusters``).
+2. Occupied clusters (``unique_clusters``, :mod:`gpupro.techniques.lights.unique_clusters`): "sort" sorts
+   all keys and each one without an identical predecessor starts a cluster (sort + compaction, the
+   paper's Fig. 5); "tile_sort" sorts the keys within each screen tile and numbers the tiles' distinct
+   keys through a prefix sum over tiles (sec. 4.2); "page_table" flags the pages of a virtual page table
+   over the key space, allocates physical pages by a prefix sum, stores the keys there and compacts
+   them (sec. 4.3, ClusteredDeferredPt; ``page_capacity`` physical pages, overflow counted in
+   ``page_overflow`` and grown to ``pages_allocated``). All three find the same clusters; the cluster
+   index is written back to each pixel (through back-links, or by the virtual lookup of its key).
+   Clusters past ``cluster_capacity`` are dropped and counted (``cluster_overflow``; the entry points
+   grow the capacity to ``clusters``).
 3. Cluster bounds (view space): implicit (``bounds = "implicit"``): the AABB of the 8 corners of the
    tile's sub-frustum between near_k and near_{k+1}, widened by 10⁻³ in depth against rounding;
    explicit (``"explicit"``): the min/max of the member samples' positions. Optional normal cone
@@ -54,21 +60,27 @@ space (camera at the origin looking down −z, view depth d = −z):
    the same. ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots × lights and the
    tree beyond (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree
    in 5.37 ms; at 1,048,576 lights the grid's 38 M candidates took longer than the tree: docs/benchmarks.md).
-   Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
-   ascending light indices; the excess is dropped and counted (``cluster_list_overflow``; grown to
-   ``max_lights_per_cluster``).
+   Per-cluster lists (``list_layout``, :mod:`gpupro.shading.light_lists`): count → scan → fill into
+   [C, L] (L = min(``cluster_light_capacity``, N)), ascending light indices, the excess dropped and
+   counted (``cluster_list_overflow``; grown to ``max_lights_per_cluster``); or packed (sec. 4.4's
+   (offset, count) per cluster into one light index list of ``list_memory_capacity`` entries, o_c the
+   exclusive scan of the list lengths; overflow ``list_memory_overflow``, grown to
+   ``list_memory_needed``). Tree assignment emits its hits grouped by cluster; packing them sorts the
+   pairs by (cluster, light) first, so that packed lists ascend as the padded ones do.
 5. Shading: each pixel evaluates the list of its cluster with the per-light arithmetic of brute force
    (:func:`gpupro.shading.light_loop.accumulate_light_lists`):
        L_o(x) = L_e + L_a · (1 − m) · c + Σ_{i ∈ list(cluster(x))} f(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i
+   (a packed list is read in place: light i of cluster c at ``indices[o_c + i]``, i < its count).
    Every culled light has zero radiance at every sample of the cluster, so the image is ``deferred``'s.
    Clustered forward clusters and shades the rasterizer's fragments (the depth pre-pass of
    ClusteredForward is the rasterizer's visibility).
 
 Counters: those of ``tiled_deferred`` over clusters (``lighting_computations`` Σ_covered |list|,
 ``exact_lighting_computations`` Σ_covered of listed lights that reach the pixel, ``false_positive_rate``,
-``light_list_bytes``), per-stage work (``clusters`` found, ``cluster_light_tests`` (cluster, light) pairs
-decided, ``tree_nodes_tested``, ``lights_backface_culled``, ``grid_candidates``) and each capacity's
-overflow and need.
+``light_list_bytes``: 4 · C · L padded, 4 · (M + 2C) packed), per-stage work (``clusters`` found,
+``keys_sorted`` and ``sort_length`` or ``pages_allocated`` for finding them, ``cluster_light_tests``
+(cluster, light) pairs decided, ``tree_nodes_tested``, ``lights_backface_culled``, ``grid_candidates``)
+and each capacity's overflow and need.
 """
 
 from __future__ import annotations

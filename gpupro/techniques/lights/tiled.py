@@ -303,7 +303,8 @@ LIST_MEMORY_CAPACITY = Capacity("list_memory_capacity", "list_memory_overflow", 
                                 "lists; the lists past the end lose their excess", needed="list_memory_needed",
                                 when=(("list_layout", "packed"),))
 LIST_MEMORY_COUNTERS = (
-    Counter("list_memory_overflow", "light index entries past list_memory_capacity (packed layout; 0 padded)"),
+    Counter("list_memory_overflow", "light index entries past list_memory_capacity (packed layout, whose light_list_bytes "
+            "are 4 × (entries + 2 × lists); 0 padded)"),
     Counter("list_memory_needed", "light index entries the lists need, Σ of their lengths before truncation"),
 )
 """The packed layout's option, capacity and counters, shared by tiled and clustered shading."""
@@ -320,7 +321,7 @@ TILED_CAPACITIES = (
 TILED_COUNTERS = SHADING_COUNTERS[:1] + (
     Counter("exact_lighting_computations", "Σ over covered pixels of the listed lights whose influence reaches them (float32)"),
     Counter("false_positive_rate", "1 − exact / lighting computations (0 when none)"),
-    Counter("light_list_bytes", "bytes of the per-tile light lists (4 × tiles × slots; packed: 4 × (entries + 2 × tiles))"),
+    Counter("light_list_bytes", "bytes of the per-tile light index lists (4 × tiles × slots)"),
     Counter("tiles", "tiles of the grid"),
     Counter("tile_list_overflow", "lights dropped from full tile lists"),
     Counter("max_lights_per_tile", "the longest tile list before truncation"),
