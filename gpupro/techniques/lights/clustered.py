@@ -647,10 +647,8 @@ CLUSTERED_CAPACITIES = (
              "is dropped with its lights", needed="max_frontier", when=(("assignment", "tree"),)),
     Capacity("grid_capacity", "grid_overflow", "(tile, slice) cells × light candidates of grid assignment; the excess "
              "is dropped", needed="grid_candidates", when=(("assignment", "grid"),)),
-    # Small pages and normal bins (54 × the tiles' keys per slice) spread the test scenes' keys over several pages.
     Capacity("page_capacity", "page_overflow", "physical pages of the page table; the samples of keys in the excess "
-             "pages get no cluster", needed="pages_allocated",
-             when=(("unique_clusters", "page_table"), ("page_size", 256), ("normal_bins", 3))),
+             "pages get no cluster", needed="pages_allocated", when=(("unique_clusters", "page_table"),)),
     LIST_MEMORY_CAPACITY,
 )
 CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
