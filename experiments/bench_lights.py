@@ -15,6 +15,8 @@ Usage::
     python experiments/bench_lights.py                                         # all lights techniques, 1024 and 2400 lights, 1920x1080
     python experiments/bench_lights.py --techniques deferred,tiled_deferred --lights 64 --resolution 320x180
     python experiments/bench_lights.py --option tiled_deferred.tile=16 --json lights.json
+    python experiments/bench_lights.py --techniques clustered_deferred --option clustered_deferred.unique_clusters='"page_table"' \
+        --option clustered_deferred.list_layout='"packed"'        # Paper II's Pt variant with packed lists
 """
 
 from __future__ import annotations
@@ -55,9 +57,10 @@ def _clustered_stages(inputs, scene, options):
     """Clustered shading's clustering (steps 1–3) and light assignment (step 4), as Paper II times them."""
     from gpupro.techniques.lights import clustered
 
-    cluster_options = {k: options[k] for k in ("tile", "normal_bins", "bounds", "normal_cones", "cluster_capacity")}
+    cluster_options = {k: options[k] for k in ("tile", "normal_bins", "bounds", "normal_cones", "cluster_capacity",
+                                               "unique_clusters", "page_size", "page_capacity")}
     assign_options = {k: options[k] for k in ("assignment", "cluster_light_capacity", "tree_branching", "frontier_capacity",
-                                              "tile", "normal_bins", "grid_capacity")}
+                                              "tile", "normal_bins", "grid_capacity", "list_layout", "list_memory_capacity")}
 
     def clusters_of(inputs, camera):
         view_position = clustered.to_view(camera, inputs["position"])
@@ -75,8 +78,8 @@ def _tiled_stages(inputs, scene, options):
     from gpupro.techniques.lights.tiled import cull_lights
 
     cull = lambda lights, camera, depth, coverage: cull_lights(
-        lights, camera, depth, coverage, tile=options["tile"], tile_capacity=options["tile_capacity"],
-        depth_bounds=options["depth_bounds"])
+        lights, camera, depth, coverage, **{k: options[k] for k in ("tile", "tile_capacity", "depth_bounds", "list_layout",
+                                                                    "list_memory_capacity")})
     return {"light assignment": (jax.jit(cull), (scene.lights, scene.camera, inputs["view_depth"], inputs["coverage"]))}
 
 

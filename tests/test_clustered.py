@@ -10,9 +10,9 @@ import pytest
 from gpupro.scene import SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.clustered import (
-    NO_KEY, assign_lights, build_clusters, cluster_keys, find_clusters, implicit_bounds, shade_clustered,
-    slice_depths, to_view,
+    NO_KEY, assign_lights, build_clusters, cluster_keys, implicit_bounds, shade_clustered, slice_depths, to_view,
 )
+from gpupro.techniques.lights.unique_clusters import find_clusters
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.light_tree import build_light_tree, morton_codes
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights, ten_thousand_lights
@@ -40,9 +40,9 @@ def lists_of(lights, **options):
 
 def _build_and_assign(lights, *, tile, normal_bins, bounds, normal_cones, assignment, cluster_capacity,
                       cluster_light_capacity, tree_branching, frontier_capacity, grid_capacity):
-    clusters, pixel_cluster = build_clusters(VIEW_POSITION, VIEW_NORMAL, GBUFFER["coverage"], CAMERA, tile=tile,
-                                             normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
-                                             cluster_capacity=cluster_capacity)
+    clusters, pixel_cluster, _ = build_clusters(VIEW_POSITION, VIEW_NORMAL, GBUFFER["coverage"], CAMERA, tile=tile,
+                                                normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
+                                                cluster_capacity=cluster_capacity)
     lists, counts, stats = assign_lights(lights, CAMERA, clusters, assignment=assignment,
                                          cluster_light_capacity=cluster_light_capacity,
                                          tree_branching=tree_branching, frontier_capacity=frontier_capacity,

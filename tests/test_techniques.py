@@ -246,6 +246,10 @@ CAPACITIES = [(t.id, c) for t in TECHNIQUES.values() for c in t.capacities]
 FURTHER_CAPACITIES = {(t.id, c) for t in TECHNIQUES.values() for c in t.capacities[1:]}
 """A technique's capacities after its first: their growth goes through the same entry points as the
 first's, so the default suite grows one capacity per technique and ``-m slow`` the rest."""
+CAPACITY_SCENE_OPTIONS = {("clustered_deferred", "page_capacity"): {"page_size": 256, "normal_bins": 3},
+                          ("clustered_forward", "page_capacity"): {"page_size": 256, "normal_bins": 3}}
+"""Options that make a capacity fill up on the small test scenes (the Cornell box's keys fit in one
+4096-key page; 256-key pages and 54 normal bins per tile spread them over several)."""
 OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred"}
 """Techniques whose own test files grow their first capacity through ``render`` against brute force
 (tests/test_fptl.py, tests/test_tiled_shading.py): their generic case (16–17 s each) runs with ``-m slow``."""
@@ -255,7 +259,8 @@ OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred"}
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]
-    small = _example(technique_id, **dict(capacity.when), **{capacity.option: capacity.small})
+    small = _example(technique_id, **dict(capacity.when), **CAPACITY_SCENE_OPTIONS.get((technique_id, capacity.option), {}),
+                     **{capacity.option: capacity.small})
     expected_pipeline = _example(t.reference or technique_id)
     expected = expected_pipeline(expected_pipeline.init_params(), scene)
     frame = small(small.init_params(), scene)

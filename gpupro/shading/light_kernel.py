@@ -41,6 +41,7 @@ from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
 from gpupro.shading.light_bounds import box_meets_light
 from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, nearest_on_segment, spot_falloff
+from gpupro.shading.light_lists import flat_list_reads
 from gpupro.shading.light_loop import light_radiance, pad_lights, sum_over_lights
 
 _TERMS_SCALAR = ("n_dot_v", "alpha", "visibility_v")
@@ -238,15 +239,16 @@ def _reaches(point, light: dict):
     return (light["kind"] == DIRECTIONAL) | (in_range & ((light["kind"] != SPOT) | in_cone))
 
 
-def _list_kernel(*refs, n_columns: int, n_lights: int, capacity: int, term, count_reached: bool):
+def _list_kernel(*refs, n_columns: int, n_lights: int, n_slots: int, term, count_reached: bool):
     column_refs = refs[:n_columns]
-    rows_ref, used_ref, slots_ref = refs[n_columns:n_columns + 3]
+    start_ref, length_ref, slots_ref = refs[n_columns:n_columns + 3]
     light_refs, out_refs = refs[n_columns + 3:-(4 if count_reached else 3)], refs[-(4 if count_reached else 3):]
     column = [r[...] for r in column_refs]  # [B] blocks
-    first_slot = rows_ref[...] * capacity  # [B]: where each point's list starts in the flattened lists
+    start, length = start_ref[...], length_ref[...]  # [B]: each point's list in the flat slots
 
     def step(j, carry):
-        index = slots_ref[first_slot + j]  # [B] gathered light indices (n_lights: the zero light)
+        # [B] gathered light indices; past a point's list (or at a hole), n_lights: the zero light
+        index = jnp.where(j < length, slots_ref[jnp.minimum(start + j, n_slots - 1)], n_lights)
         light = _light_of([r[index] for r in light_refs])
         total = tuple(t + c for t, c in zip(carry, term(column, light)))
         if count_reached:
@@ -256,7 +258,7 @@ def _list_kernel(*refs, n_columns: int, n_lights: int, capacity: int, term, coun
 
     zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
     # The block walks its longest list; shorter lists read the zero light past their end.
-    total = jax.lax.fori_loop(0, jnp.max(used_ref[...]), step, (zeros,) * len(out_refs))
+    total = jax.lax.fori_loop(0, jnp.max(length), step, (zeros,) * len(out_refs))
     for ref, value in zip(out_refs, total):
         ref[...] = value
 
@@ -268,33 +270,33 @@ def list_sums(columns: list, lights: Lights, term, lists, rows, *, block_pixels:
     ``columns``: per-point float32 arrays [P], the point's position (three components) first, then
     whatever ``term`` reads; ``term``: a function of the columns' blocks [B] and a light's blocks [B]
     by name (:func:`_light_of`; the zero light of empty slots has zero colour) → (R, G, B) blocks [B];
-    ``lights`` N lights; ``lists`` int32 [R, C] light indices, −1 in empty slots; ``rows`` int32 [P]:
-    the row of ``lists`` each point evaluates. A block of ``block_pixels`` consecutive points loops over
-    its longest list (up to the last filled slot), so neighbouring points should share lists (tiles,
-    clusters, froxel blocks). Returns radiance [P, 3] and, with ``count_reached`` (static), [P] float32
+    ``lights`` N lights; ``lists``: R light lists, padded int32 [R, C] (−1 in empty slots) or
+    :class:`gpupro.shading.light_lists.PackedLists` (read in place through their offsets and counts);
+    ``rows`` int32 [P]: the list each point evaluates. A block of ``block_pixels`` consecutive points
+    loops over its longest list (up to the last filled slot), so neighbouring points should share lists
+    (tiles, clusters, froxel blocks). Returns radiance [P, 3] and, with ``count_reached`` (static), [P] float32
     counts of the listed lights whose influence truly reaches each point. Not differentiable by itself.
     """
-    n_points, capacity = columns[0].shape[0], lists.shape[1]
+    n_points = columns[0].shape[0]
     padded = -(-n_points // block_pixels) * block_pixels
+    slots, start, length = flat_list_reads(lists, jnp.asarray(rows, jnp.int32), lights.count)
+    slots = jnp.concatenate([slots.astype(jnp.int32), jnp.full((1,), lights.count, jnp.int32)])  # never empty
     lights = pad_lights(lights, count=1)  # index N: the zero light of empty slots
-    slots = jnp.where(lists < 0, lights.count - 1, lists).astype(jnp.int32)
-    used = jnp.max(jnp.where(lists >= 0, jnp.arange(1, capacity + 1, dtype=jnp.int32), 0), axis=1)
     pad = lambda x: jnp.pad(x, (0, padded - n_points))
-    rows = jnp.asarray(rows, jnp.int32)
-    point_arrays = [pad(jnp.asarray(c, jnp.float32)) for c in columns] + [pad(rows), pad(used[rows])]
+    point_arrays = [pad(jnp.asarray(c, jnp.float32)) for c in columns] + [pad(start), pad(length)]
     light_arrays = _light_arrays(lights)
     n_out = 4 if count_reached else 3
     point_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
     whole = lambda a: pl.BlockSpec(a.shape, lambda i: (0,))
     out = pl.pallas_call(
-        functools.partial(_list_kernel, n_columns=len(columns), n_lights=lights.count - 1, capacity=capacity,
+        functools.partial(_list_kernel, n_columns=len(columns), n_lights=lights.count - 1, n_slots=slots.shape[0],
                           term=term, count_reached=count_reached),
         out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * n_out,
         grid=(padded // block_pixels,),
-        in_specs=[point_spec] * len(point_arrays) + [whole(slots.reshape(-1))] + [whole(a) for a in light_arrays],
+        in_specs=[point_spec] * len(point_arrays) + [whole(slots)] + [whole(a) for a in light_arrays],
         out_specs=[point_spec] * n_out,
         interpret=interpret,
-    )(*point_arrays, slots.reshape(-1), *light_arrays)
+    )(*point_arrays, slots, *light_arrays)
     radiance = jnp.stack(out[:3], axis=-1)[:n_points]
     return (radiance, out[3][:n_points]) if count_reached else radiance
 
@@ -306,7 +308,7 @@ def light_list_sums(points, terms: dict, lights: Lights, lists, rows, *, block_p
     no shadows).
 
     ``points`` [P, 3]; ``terms`` the points' GGX :func:`gpupro.shading.brdfs.view_terms` ([P, 3] and
-    [P]); ``lights``, ``lists`` [R, C], ``rows`` [P] as :func:`list_sums`. Returns ``(radiance [P, 3] in
+    [P]); ``lights``, ``lists`` (padded or packed), ``rows`` [P] as :func:`list_sums`. Returns ``(radiance [P, 3] in
     W/(m² sr), reached [P] float32)``: ``reached`` counts the listed lights whose influence truly reaches
     each point. Not differentiable by itself.
     """

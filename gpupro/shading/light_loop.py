@@ -38,6 +38,7 @@ from gpupro.numerics import dot3
 from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights
 from gpupro.shading.brdfs import DISTRIBUTIONS, brdf_towards, view_terms
 from gpupro.shading.light_falloff import incident_light, representative_points
+from gpupro.shading.light_lists import list_chunks, longest_list, with_empty_row
 
 _VIEW_LENGTH_MIN = 1e-12  # floor under |e − x| so v is finite when a point sits at the eye
 
@@ -202,40 +203,44 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
     (and clustered) shading, with the per-light arithmetic of :func:`accumulate_lights`.
 
     ``points`` [G, Q, 3] world positions in G groups (tiles) of Q points; ``normals``, ``views``,
-    ``base_color`` [G, Q, 3]; ``roughness``, ``metallic`` [G, Q]; ``lights``: N lights; ``lists`` int32
-    [G, C]: the indices of the lights each group evaluates, −1 in empty slots (they get a zero-colour
-    light and add exactly 0; work is cheapest when each list's entries come first); ``list_of_group``:
-    None (group g evaluates row g, C rows = G), or int32 [G]: the row of ``lists`` [R, C] that each
-    group evaluates (−1: none; e.g. each pixel's cluster); ``shadow``: None or
+    ``base_color`` [G, Q, 3]; ``roughness``, ``metallic`` [G, Q]; ``lights``: N lights; ``lists``: the
+    indices of the lights each group evaluates, padded int32 [G, C] (−1 in empty slots: they get a
+    zero-colour light and add exactly 0; work is cheapest when each list's entries come first) or
+    :class:`gpupro.shading.light_lists.PackedLists` of G lists (light i of list g at
+    ``indices[offset_g + i]``, i < count_g; read in place, never expanded to rows); ``list_of_group``:
+    None (group g evaluates list g, G lists), or int32 [G]: the list (of R) that each group evaluates
+    (−1: none; e.g. each pixel's cluster); ``shadow``: None or
     [G, Q, K] visibility of the first K ≤ N lights; ``distribution``, ``light_chunk`` (static) as in
-    :func:`accumulate_lights` (list slots per step, capped at C); ``light_loop`` (static) "scan" (the
+    :func:`accumulate_lights` (list slots per step, capped at the longest possible list); ``light_loop`` (static) "scan" (the
     bucketed XLA loop below), "kernel" (:func:`gpupro.shading.light_kernel.light_list_sums`; GGX, no
     shadows) or "auto" (the kernel on GPUs where it applies).
     Returns ``(radiance [G, Q, 3], reached [G, Q] float32)``: ``reached`` counts the listed lights whose
     influence truly reaches each point (:func:`light_reaches`).
 
-    Bucketing by list length: shading from the padded [G, C] array would cost every group the longest
+    Bucketing by list length: shading every slot of a padded [G, C] array would cost every group the longest
     list's work (as much as brute force once one tile holds many lights). Instead the groups are sorted
     by the number of chunks their lists use and cut into blocks of about ``WORK_PER_STEP`` evaluations
     per chunk step; each block loops over its own longest list only, so a group whose list holds k
     lights costs about ⌈k / chunk⌉ steps. The loops' trip counts are data-dependent, which reverse-mode
     differentiation cannot follow, so gradients are those of the same sums taken over every slot
-    (:func:`_padded_light_lists`), computed in the backward pass.
+    (:func:`_every_slot_light_lists`), computed in the backward pass: C slots per group padded, min(M, N)
+    packed (a packed list has no per-group bound, so its backward pass costs brute force's work).
     """
     points = jnp.asarray(points, jnp.float32)
     n_groups, n_per_group = points.shape[:2]
-    capacity = lists.shape[1]
-    if capacity == 0 or lights.count == 0:
+    lists = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.int32), lists)
+    longest = longest_list(lists, lights.count)
+    if longest == 0 or lights.count == 0:
         return jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32)
-    chunk = min(light_chunk or default_light_chunk(), capacity)
+    chunk = min(light_chunk or default_light_chunk(), longest)
     surface = tuple(jnp.asarray(x, jnp.float32) for x in (points, normals, views, base_color, roughness, metallic))
     shadow = None if shadow is None else jnp.asarray(shadow, jnp.float32)
-    lists = jnp.asarray(lists, jnp.int32)
     if list_of_group is None:
         rows = jnp.arange(n_groups, dtype=jnp.int32)
-    else:  # −1 picks an appended empty row
-        lists = jnp.concatenate([lists, jnp.full((1, capacity), -1, jnp.int32)])
-        rows = jnp.where(jnp.asarray(list_of_group) < 0, lists.shape[0] - 1, jnp.asarray(list_of_group, jnp.int32))
+    else:  # −1 picks an appended empty list
+        empty = jax.tree_util.tree_leaves(lists)[0].shape[0]
+        lists = with_empty_row(lists)
+        rows = jnp.where(jnp.asarray(list_of_group) < 0, empty, jnp.asarray(list_of_group, jnp.int32))
     light_loop = _surface_light_loop(light_loop, shadow, distribution, "accumulate_light_lists")
     return _light_lists(surface, lights, lists, rows, shadow, distribution, chunk, light_loop)
 
@@ -243,16 +248,6 @@ def accumulate_light_lists(points, normals, views, base_color, roughness, metall
 WORK_PER_STEP = 1 << 21
 """Light evaluations per chunk step of a block of groups in :func:`accumulate_light_lists` (peak
 intermediate about WORK_PER_STEP × 3 floats)."""
-
-
-def _slots(lists, lights: Lights, chunk: int):
-    """``lists`` [G, C] → [G, n_chunks, chunk] light indices, −1 (and the padding to whole chunks)
-    turned into index N, the appended zero-colour light of ``pad_lights(lights, count=1)``."""
-    n_groups, capacity = lists.shape
-    n_chunks = -(-capacity // chunk)
-    lists = jnp.where(lists < 0, lights.count, lists)
-    lists = jnp.pad(lists, [(0, 0), (0, n_chunks * chunk - capacity)], constant_values=lights.count)
-    return lists.reshape(n_groups, n_chunks, chunk)
 
 
 def _with_unshadowed(shadow, n_groups: int, n_per_group: int):
@@ -282,24 +277,25 @@ def _group_sums(group_points, terms, group_shadow, indices, padded: Lights, n_li
     return jnp.sum(radiance, axis=1), jnp.sum(reached, axis=1, dtype=jnp.float32)
 
 
-def _padded_light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
-    """:func:`accumulate_light_lists` over every slot of every list (a scan over the C / chunk slot
-    chunks): the differentiable form, whose cost is G · Q · C evaluations."""
+def _every_slot_light_lists(surface, lights: Lights, lists, rows, shadow, distribution: str, chunk: int):
+    """:func:`accumulate_light_lists` over every slot a list may have (a scan over the chunks of
+    :func:`gpupro.shading.light_lists.longest_list`): the differentiable form, whose cost is G · Q · C
+    evaluations (C: that bound)."""
     n_groups, n_per_group = surface[0].shape[:2]
-    slots = _slots(lists, lights, chunk)[rows].transpose(1, 0, 2)  # [n_chunks, G, chunk]
+    n_chunks, _, fetch = list_chunks(lists, lights.count, chunk)
     padded = pad_lights(lights, count=1)
     shadow, n_shadowed = _with_unshadowed(shadow, n_groups, n_per_group)
     points, terms = _group_terms(surface, distribution)
 
     @jax.checkpoint
-    def step(carry, indices):
+    def step(carry, j):
         total, count = carry
         group = lambda p, t, sh, i: _group_sums(p, t, sh, i, padded, lights.count, n_shadowed, distribution)
-        radiance, reached = jax.vmap(group)(points, terms, shadow, indices)
+        radiance, reached = jax.vmap(group)(points, terms, shadow, fetch(rows, j))
         return (total + radiance, count + reached), None
 
     zeros = (jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32))
-    (total, reached), _ = jax.lax.scan(step, zeros, slots)
+    (total, reached), _ = jax.lax.scan(step, zeros, jnp.arange(n_chunks, dtype=jnp.int32))
     return total, reached
 
 
@@ -307,10 +303,8 @@ def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribu
     """:func:`accumulate_light_lists` over the chunks that hold a light (its docstring): groups sorted by
     list length, in blocks of ``items`` groups, each block looping over its longest list's chunks."""
     n_groups, n_per_group = surface[0].shape[:2]
-    slots = _slots(lists, lights, chunk)  # [R, n_chunks, chunk]
-    n_chunks = slots.shape[1]
-    # Chunks up to the last one holding a light (holes inside a list are evaluated as zero lights).
-    used = jnp.max(jnp.where(jnp.any(slots < lights.count, axis=2), jnp.arange(1, n_chunks + 1), 0), axis=1)[rows]
+    _, used, fetch = list_chunks(lists, lights.count, chunk)
+    used = used[rows]
     items = max(1, min(WORK_PER_STEP // (n_per_group * chunk), n_groups))
     n_blocks = -(-n_groups // items)
     # Longest lists first, padded to whole blocks with groups that use no chunk.
@@ -323,12 +317,12 @@ def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribu
     sums = jax.vmap(lambda p, t, sh, i: _group_sums(p, t, sh, i, padded, lights.count, n_shadowed, distribution))
 
     def block(_, xs):
-        block_surface, block_shadow, block_slots, chunks = xs
+        block_surface, block_shadow, block_rows, chunks = xs
         block_points, block_terms = _group_terms(block_surface, distribution)
 
         def step(carry):
             j, total, count = carry
-            radiance, reached = sums(block_points, block_terms, block_shadow, block_slots[:, j])
+            radiance, reached = sums(block_points, block_terms, block_shadow, fetch(block_rows, j))
             return j + 1, total + radiance, count + reached
 
         zeros = (jnp.int32(0), jnp.zeros((items, n_per_group, 3), jnp.float32),
@@ -336,8 +330,7 @@ def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribu
         _, total, count = jax.lax.while_loop(lambda carry: carry[0] < chunks, step, zeros)
         return None, (total, count)
 
-    block_slots = slots[rows[source]].reshape((n_blocks, items) + slots.shape[1:])
-    xs = (jax.tree_util.tree_map(blocked, surface), None if shadow is None else blocked(shadow), block_slots, block_used)
+    xs = (jax.tree_util.tree_map(blocked, surface), None if shadow is None else blocked(shadow), blocked(rows), block_used)
     _, (total, reached) = jax.lax.scan(block, None, xs)
     unsort = jnp.argsort(order)[:n_groups]
     return (total.reshape((n_blocks * items, n_per_group, 3))[unsort],
@@ -377,11 +370,11 @@ def _light_lists_forward(surface, lights, lists, rows, shadow, distribution, chu
 
 def _light_lists_backward(distribution, chunk, light_loop, saved, cotangent):
     surface, lights, lists, rows, shadow = saved
-    _, pullback = jax.vjp(lambda s, l, sh: _padded_light_lists(s, l, lists, rows, sh, distribution, chunk),
+    _, pullback = jax.vjp(lambda s, l, sh: _every_slot_light_lists(s, l, lists, rows, sh, distribution, chunk),
                           surface, lights, shadow)
     d_surface, d_lights, d_shadow = pullback(cotangent)
     no_cotangent = lambda x: np.zeros(x.shape, jax.dtypes.float0)
-    return d_surface, d_lights, no_cotangent(lists), no_cotangent(rows), d_shadow
+    return d_surface, d_lights, jax.tree_util.tree_map(no_cotangent, lists), no_cotangent(rows), d_shadow
 
 
 _light_lists.defvjp(_light_lists_forward, _light_lists_backward)

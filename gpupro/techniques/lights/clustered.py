@@ -17,10 +17,16 @@ space (camera at the origin looking down −z, view depth d = −z):
    ``normal_bins`` = X > 0 the key also holds the sample's normal direction: the cube face of its major
    axis and an X × X grid on that face (Fig. 4; 6X² bins, X = 3 gives the paper's 54). Packed
    key = ((k · 6X² + bin) · S_y + j) · S_x + i in an int32 (k clamped to the largest slice that fits).
-2. Occupied clusters: the keys are sorted and each one without an identical predecessor starts a
-   cluster (sort + compaction, the paper's Fig. 5); its rank is the cluster index, written back to its
-   pixels. Clusters past ``cluster_capacity`` are dropped and counted (``cluster_overflow``; the entry
-   points grow the capacity to ``clusters``).
+2. Occupied clusters (``unique_clusters``, :mod:`gpupro.techniques.lights.unique_clusters`): "sort" sorts
+   all keys and each one without an identical predecessor starts a cluster (sort + compaction, the
+   paper's Fig. 5); "tile_sort" sorts the keys within each screen tile and numbers the tiles' distinct
+   keys through a prefix sum over tiles (sec. 4.2); "page_table" flags the pages of a virtual page table
+   over the key space, allocates physical pages by a prefix sum, stores the keys there and compacts
+   them (sec. 4.3, ClusteredDeferredPt; ``page_capacity`` physical pages, overflow counted in
+   ``page_overflow`` and grown to ``pages_allocated``). All three find the same clusters; the cluster
+   index is written back to each pixel (through back-links, or by the virtual lookup of its key).
+   Clusters past ``cluster_capacity`` are dropped and counted (``cluster_overflow``; the entry points
+   grow the capacity to ``clusters``).
 3. Cluster bounds (view space): implicit (``bounds = "implicit"``): the AABB of the 8 corners of the
    tile's sub-frustum between near_k and near_{k+1}, widened by 10⁻³ in depth against rounding;
    explicit (``"explicit"``): the min/max of the member samples' positions. Optional normal cone
@@ -54,21 +60,27 @@ space (camera at the origin looking down −z, view depth d = −z):
    the same. ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots × lights and the
    tree beyond (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree
    in 5.37 ms; at 1,048,576 lights the grid's 38 M candidates took longer than the tree: docs/benchmarks.md).
-   Per-cluster lists: count → scan → fill into [C, L] (L = min(``cluster_light_capacity``, N)),
-   ascending light indices; the excess is dropped and counted (``cluster_list_overflow``; grown to
-   ``max_lights_per_cluster``).
+   Per-cluster lists (``list_layout``, :mod:`gpupro.shading.light_lists`): count → scan → fill into
+   [C, L] (L = min(``cluster_light_capacity``, N)), ascending light indices, the excess dropped and
+   counted (``cluster_list_overflow``; grown to ``max_lights_per_cluster``); or packed (sec. 4.4's
+   (offset, count) per cluster into one light index list of ``list_memory_capacity`` entries, o_c the
+   exclusive scan of the list lengths; overflow ``list_memory_overflow``, grown to
+   ``list_memory_needed``). Tree assignment emits its hits grouped by cluster; packing them sorts the
+   pairs by (cluster, light) first, so that packed lists ascend as the padded ones do.
 5. Shading: each pixel evaluates the list of its cluster with the per-light arithmetic of brute force
    (:func:`gpupro.shading.light_loop.accumulate_light_lists`):
        L_o(x) = L_e + L_a · (1 − m) · c + Σ_{i ∈ list(cluster(x))} f(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i
+   (a packed list is read in place: light i of cluster c at ``indices[o_c + i]``, i < its count).
    Every culled light has zero radiance at every sample of the cluster, so the image is ``deferred``'s.
    Clustered forward clusters and shades the rasterizer's fragments (the depth pre-pass of
    ClusteredForward is the rasterizer's visibility).
 
 Counters: those of ``tiled_deferred`` over clusters (``lighting_computations`` Σ_covered |list|,
 ``exact_lighting_computations`` Σ_covered of listed lights that reach the pixel, ``false_positive_rate``,
-``light_list_bytes``), per-stage work (``clusters`` found, ``cluster_light_tests`` (cluster, light) pairs
-decided, ``tree_nodes_tested``, ``lights_backface_culled``, ``grid_candidates``) and each capacity's
-overflow and need.
+``light_list_bytes``: 4 · C · L padded, 4 · (M + 2C) packed), per-stage work (``clusters`` found,
+``keys_sorted`` and ``sort_length`` or ``pages_allocated`` for finding them, ``cluster_light_tests``
+(cluster, light) pairs decided, ``tree_nodes_tested``, ``lights_backface_culled``, ``grid_candidates``)
+and each capacity's overflow and need.
 """
 
 from __future__ import annotations
@@ -82,17 +94,19 @@ from gpupro.numerics import einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, Lights
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_boxes, light_spheres, transform_lights
+from gpupro.shading.light_lists import kept_lengths, list_storage, pack_pairs
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.lights.light_tree import build_light_tree, traverse
-from gpupro.techniques.lights.tiled import TILED_COUNTERS, fill_light_lists, from_tiles, screen_bounds, tile_grid, to_tiles
+from gpupro.techniques.lights.tiled import (
+    LIST_LAYOUT_OPTIONS, LIST_MEMORY_CAPACITY, LIST_MEMORY_COUNTERS, TILED_COUNTERS, fill_lists, from_tiles,
+    list_memory_counters, screen_bounds, tile_grid, to_tiles,
+)
+from gpupro.techniques.lights.unique_clusters import NO_KEY, PAGE_SIZES, UNIQUE_CLUSTERS, unique_clusters_of
 from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
-
-NO_KEY = jnp.iinfo(jnp.int32).max
-"""The key of uncovered pixels (sorts after every cluster)."""
 
 DEPTH_WIDENING = 1e-3
 """Relative widening of implicit slice depths (the log of eq. 2 rounds)."""
@@ -216,25 +230,6 @@ def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: 
     return jnp.where(jnp.asarray(coverage) > 0, keys, NO_KEY), last
 
 
-def find_clusters(keys, *, capacity: int):
-    """The occupied clusters of ``keys`` [P] int32 by sort and compaction (step 2).
-
-    Returns ``(cluster_keys int32 [capacity] ascending, NO_KEY in empty slots; pixel_cluster int32 [P],
-    the cluster index of each sample, −1 for uncovered samples and those of clusters past the capacity;
-    count int32, the clusters found)``.
-    """
-    order = jnp.argsort(keys)
-    ordered = keys[order]
-    occupied = ordered != NO_KEY
-    first = occupied & jnp.concatenate([jnp.ones(1, bool), ordered[1:] != ordered[:-1]])
-    rank = jnp.cumsum(first, dtype=jnp.int32) - 1
-    slot = jnp.where(first, rank, capacity)
-    unique = jnp.full((capacity,), NO_KEY, jnp.int32).at[slot].set(ordered, mode="drop")
-    member = jnp.where(occupied & (rank < capacity), rank, -1)
-    pixel_cluster = jnp.zeros_like(member).at[order].set(member)
-    return unique, pixel_cluster, jnp.sum(first, dtype=jnp.int32)
-
-
 def implicit_bounds(keys, camera: Camera, *, shape, tile: int, normal_bins: int, last: int):
     """View-space AABBs ``(lower, upper)`` [C, 3] of the sub-frusta of packed ``keys`` [C] (step 3); the
     whole space for the clamped slice ``last``. ``shape`` (H, W) and the static options as in
@@ -285,13 +280,18 @@ def explicit_cones(view_normal, pixel_cluster, *, capacity: int):
 
 
 def build_clusters(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int,
-                   bounds: str, normal_cones: str, cluster_capacity: int):
+                   bounds: str, normal_cones: str, cluster_capacity: int, unique_clusters: str = "sort",
+                   page_size: int = 4096, page_capacity: int = 1):
     """Steps 1–3: keys, occupied clusters and their bounds. ``view_position``, ``view_normal`` [H, W, 3]
-    (view space), ``coverage`` [H, W]; static options as in the specification. Returns ``(clusters,
-    pixel_cluster int32 [H·W])`` (:class:`Clusters`)."""
+    (view space), ``coverage`` [H, W]; static options as in the specification (``unique_clusters``,
+    ``page_size``, ``page_capacity``: :mod:`gpupro.techniques.lights.unique_clusters`). Returns
+    ``(clusters, pixel_cluster int32 [H·W], counters)`` (:class:`Clusters`; the counters of
+    :func:`gpupro.techniques.lights.unique_clusters.unique_clusters_of`)."""
     shape = jnp.shape(coverage)
     keys, last = cluster_keys(view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins)
-    unique, pixel_cluster, count = find_clusters(keys.reshape(-1), capacity=cluster_capacity)
+    unique, pixel_cluster, count, stats = unique_clusters_of(keys, method=unique_clusters, tile=tile,
+                                                             capacity=cluster_capacity, page_size=page_size,
+                                                             page_capacity=page_capacity)
     valid = unique != NO_KEY
     points, normals = view_position.reshape(-1, 3), view_normal.reshape(-1, 3)
     if bounds == "explicit":
@@ -310,7 +310,7 @@ def build_clusters(view_position, view_normal, coverage, camera: Camera, *, tile
     else:
         axis, half_angle = jnp.zeros((cluster_capacity, 3), jnp.float32), jnp.full((cluster_capacity,), jnp.pi)
     lower, upper = jnp.where(valid[:, None], lower, jnp.inf), jnp.where(valid[:, None], upper, -jnp.inf)
-    return Clusters(unique, valid, lower, upper, axis, jnp.where(valid, half_angle, jnp.pi), count), pixel_cluster
+    return Clusters(unique, valid, lower, upper, axis, jnp.where(valid, half_angle, jnp.pi), count), pixel_cluster, stats
 
 
 def light_leaf_boxes(lights_view: Lights):
@@ -350,13 +350,17 @@ def pair_tests(clusters: Clusters, lights_view: Lights, leaf_lower, leaf_upper, 
     return meets & ~behind, meets & behind
 
 
-def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int, light_ordered: bool = False):
+def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int, light_ordered: bool = False,
+                    list_layout: str = "padded", list_memory_capacity: int = 0):
     """Count → scan → fill of K (cluster, light) pairs where ``hit`` into int32 [clusters, capacity]
     lists (ascending light indices, −1 in empty slots) and the int32 [clusters] counts before truncation.
     ``light_ordered``: the pairs come in ascending light order, so a stable sort on the cluster alone
-    keeps each list ascending (a one-key sort, which GPUs run as a radix sort)."""
+    keeps each list ascending (a one-key sort, which GPUs run as a radix sort). ``list_layout`` "packed":
+    :class:`gpupro.shading.light_lists.PackedLists` into ``list_memory_capacity`` entries instead."""
     cluster = jnp.where(hit, cluster, clusters)
     cluster, light = jax.lax.sort((cluster, light), num_keys=1 if light_ordered else 2, is_stable=light_ordered)
+    if list_layout == "packed":
+        return pack_pairs(cluster, light, cluster < clusters, groups=clusters, memory_capacity=list_memory_capacity)
     # Each cluster's run in the sorted pairs by binary search, not by a segment sum: the misses all
     # share one segment, whose atomic adds would serialise on a GPU.
     bounds = jnp.searchsorted(cluster, jnp.arange(clusters + 1, dtype=jnp.int32)).astype(jnp.int32)
@@ -410,9 +414,12 @@ def grid_candidates(lights: Lights, camera: Camera, clusters: Clusters, *, tile:
     clamp = lambda v, n: jnp.clip(jnp.nan_to_num(v, posinf=n - 1, neginf=0), 0, n - 1).astype(jnp.int32)
     x0, x1 = clamp(first_col, tiles_x), clamp(last_col, tiles_x)
     y0, y1 = clamp(first_row, tiles_y), clamp(last_row, tiles_y)
-    # Only slices between the nearest and the farthest occupied one can hold a cluster (keys ascend).
-    occupied_first = clusters.keys[0] // (tiles_y * tiles_x)
-    occupied_last = jnp.max(jnp.where(clusters.valid, clusters.keys, 0)) // (tiles_y * tiles_x)
+    # Clusters in key order (the tile-local sort indexes them tile by tile): only slices between the
+    # nearest and the farthest occupied one can hold a cluster.
+    by_key = jnp.argsort(clusters.keys)
+    keys = clusters.keys[by_key]
+    occupied_first = keys[0] // (tiles_y * tiles_x)
+    occupied_last = jnp.max(jnp.where(keys != NO_KEY, keys, 0)) // (tiles_y * tiles_x)
     slices = lambda d: depth_slices(d, camera, tiles_y=tiles_y, last=last_slice(tiles_y * tiles_x))
     k0 = jnp.maximum(slices(jnp.nan_to_num(depth[:, 0], neginf=0.0)) - 1, occupied_first)
     k1 = jnp.minimum(slices(jnp.nan_to_num(depth[:, 1], posinf=3e38)) + 1, occupied_last)
@@ -431,33 +438,36 @@ def grid_candidates(lights: Lights, camera: Camera, clusters: Clusters, *, tile:
     dz, rest = local % nz[light], local // nz[light]
     dx, dy = rest % nx[light], rest // nx[light]
     key = ((k0[light] + dz) * tiles_y + y0[light] + dy) * tiles_x + x0[light] + dx
-    cluster = jnp.clip(jnp.searchsorted(clusters.keys, key), 0, clusters.keys.shape[0] - 1).astype(jnp.int32)
-    valid = (jnp.arange(grid_capacity) < ends[-1]) & (clusters.keys[cluster] == key) & clusters.valid[cluster]
+    found = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1)
+    cluster = by_key[found].astype(jnp.int32)
+    valid = (jnp.arange(grid_capacity) < ends[-1]) & (keys[found] == key) & clusters.valid[cluster]
     return cluster, light, valid, total
 
 
 def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignment: str,
                   cluster_light_capacity: int, tree_branching: int, frontier_capacity: int, tile: int,
-                  normal_bins: int, grid_capacity: int):
+                  normal_bins: int, grid_capacity: int, list_layout: str = "padded", list_memory_capacity: int = 0):
     """Step 4: per-cluster light lists, by brute force, through the light tree or by grid binning (the
     same lists).
 
     ``lights`` N lights (world space); ``camera`` gives the view transform, projection and resolution;
     ``clusters`` C slots; static: ``assignment`` ("auto", "brute_force", "tree" or "grid"),
     ``cluster_light_capacity``, ``tree_branching``, ``frontier_capacity``, ``tile``, ``normal_bins`` (the
-    keys' layout) and ``grid_capacity``. Returns ``(lists int32 [C, L], counts int32 [C], counters)``, L =
-    min(cluster_light_capacity, N), counts before truncation; counters ``cluster_light_tests``,
+    keys' layout), ``grid_capacity``, ``list_layout`` and ``list_memory_capacity``. Returns ``(lists,
+    counts int32 [C], counters)``: lists padded int32 [C, L], L = min(cluster_light_capacity, N), or
+    :class:`gpupro.shading.light_lists.PackedLists` (``list_layout`` "packed"), counts before truncation; counters ``cluster_light_tests``,
     ``tree_nodes_tested``, ``lights_backface_culled``, ``frontier_overflow``, ``max_frontier``,
     ``grid_overflow``, ``grid_candidates``.
     """
     n_clusters, n_lights = clusters.valid.shape[0], lights.count
     capacity = min(cluster_light_capacity, n_lights)
+    layout = dict(list_layout=list_layout, list_memory_capacity=list_memory_capacity)
     zero = jnp.int32(0)
     stats = dict(tree_nodes_tested=zero, frontier_overflow=zero, max_frontier=zero, grid_overflow=zero,
                  grid_candidates=zero)
     if n_lights == 0:
-        return (jnp.zeros((n_clusters, 0), jnp.int32), jnp.zeros((n_clusters,), jnp.int32),
-                dict(stats, cluster_light_tests=zero, lights_backface_culled=zero))
+        lists, counts = fill_lists(jnp.zeros((n_clusters, 0), bool), capacity=0, **layout)
+        return lists, counts, dict(stats, cluster_light_tests=zero, lights_backface_culled=zero)
     if assignment == "grid" and normal_bins:
         raise ValueError("clustered shading: assignment = 'grid' needs normal_bins = 0 (it bins lights by "
                          "tile and depth slice)")
@@ -470,13 +480,14 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
         cluster = jnp.repeat(jnp.arange(n_clusters, dtype=jnp.int32), n_lights)
         light = jnp.tile(jnp.arange(n_lights, dtype=jnp.int32), n_clusters)
         hit, culled = tests(cluster, light)
-        lists, counts = fill_light_lists(hit.reshape(n_clusters, n_lights), capacity)
+        lists, counts = fill_lists(hit.reshape(n_clusters, n_lights), capacity=capacity, **layout)
         stats["cluster_light_tests"] = jnp.sum(clusters.valid, dtype=jnp.int32) * n_lights
     elif assignment == "grid":
         cluster, light, valid, total = grid_candidates(lights, camera, clusters, tile=tile, grid_capacity=grid_capacity)
         hit, culled = tests(cluster, light)
         hit, culled = hit & valid, culled & valid
-        lists, counts = fill_pair_lists(cluster, light, hit, clusters=n_clusters, capacity=capacity, light_ordered=True)
+        lists, counts = fill_pair_lists(cluster, light, hit, clusters=n_clusters, capacity=capacity, light_ordered=True,
+                                        **layout)
         stats.update(cluster_light_tests=jnp.sum(valid, dtype=jnp.int32), grid_candidates=total,
                      grid_overflow=jnp.maximum(total - grid_capacity, 0))
     else:
@@ -490,8 +501,12 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
         cluster, light, hit, found_stats = traverse(tree, clusters.lower, clusters.upper, clusters.valid, leaf_test,
                                                     frontier_capacity=frontier_capacity)
         culled = found["culled"] & (light >= 0)
-        lists, counts = fill_grouped_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters,
-                                                capacity=capacity)
+        if list_layout == "packed":  # sorted to ascending lights within each cluster's run
+            lists, counts = fill_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters,
+                                            capacity=capacity, **layout)
+        else:
+            lists, counts = fill_grouped_pair_lists(cluster, jnp.maximum(light, 0), hit, clusters=n_clusters,
+                                                    capacity=capacity)
         found_stats["cluster_light_tests"] = found_stats.pop("lights_tested")
         stats.update(found_stats)
     stats["lights_backface_culled"] = jnp.sum(culled, dtype=jnp.int32)
@@ -508,7 +523,7 @@ def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, cam
     """Step 5: every pixel shaded with the list of its cluster through the shared light loop.
 
     ``surface`` G-buffer dict (:data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`, [H, W] or
-    [H, W, 3]); ``lists`` int32 [C, L]; ``pixel_cluster`` int32 [H·W] (−1: no cluster); ``shadow`` None
+    [H, W, 3]); ``lists`` padded int32 [C, L] or packed; ``pixel_cluster`` int32 [H·W] (−1: no cluster); ``shadow`` None
     or [H, W, K]; static ``distribution``, ``light_chunk``. Returns ``(hdr [H, W, 3], reached [H·W])``:
     ``reached`` counts the listed lights whose influence reaches each pixel.
     """
@@ -534,7 +549,9 @@ def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, cam
 def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                     distribution: str, light_chunk: int | None, tile: int, normal_bins: int, bounds: str,
                     normal_cones: str, assignment: str, cluster_capacity: int, cluster_light_capacity: int,
-                    tree_branching: int, frontier_capacity: int, grid_capacity: int):
+                    tree_branching: int, frontier_capacity: int, grid_capacity: int, unique_clusters: str = "sort",
+                    page_size: int = 4096, page_capacity: int = 1, list_layout: str = "padded",
+                    list_memory_capacity: int = 0):
     """Clustered shading of per-pixel surfaces (steps 1–5 of the module docstring).
 
     ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
@@ -546,30 +563,35 @@ def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, b
     coverage = surface["coverage"]
     view_position = to_view(camera, surface["position"])
     view_normal = to_view(camera, surface["normal"], vectors=True)
-    clusters, pixel_cluster = build_clusters(view_position, view_normal, coverage, camera, tile=tile,
-                                             normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
-                                             cluster_capacity=cluster_capacity)
+    clusters, pixel_cluster, cluster_stats = build_clusters(
+        view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins, bounds=bounds,
+        normal_cones=normal_cones, cluster_capacity=cluster_capacity, unique_clusters=unique_clusters,
+        page_size=page_size, page_capacity=page_capacity)
     lists, counts, stats = assign_lights(lights, camera, clusters, assignment=assignment,
                                          cluster_light_capacity=cluster_light_capacity,
                                          tree_branching=tree_branching, frontier_capacity=frontier_capacity,
-                                         tile=tile, normal_bins=normal_bins, grid_capacity=grid_capacity)
+                                         tile=tile, normal_bins=normal_bins, grid_capacity=grid_capacity,
+                                         list_layout=list_layout, list_memory_capacity=list_memory_capacity)
     hdr, reached = shade_cluster_lists(surface, lists, pixel_cluster, lights, camera, ambient=ambient,
                                        background=background, shadow=shadow, distribution=distribution,
                                        light_chunk=light_chunk)
     covered = (jnp.asarray(coverage) > 0).reshape(-1) & (pixel_cluster >= 0)
-    evaluated = jnp.minimum(counts, lists.shape[1])[jnp.maximum(pixel_cluster, 0)]
+    evaluated = kept_lengths(lists, counts)[jnp.maximum(pixel_cluster, 0)]
     lighting = jnp.sum(jnp.where(covered, evaluated, 0).astype(jnp.float32))
     exact = jnp.sum(jnp.where(covered, reached, 0.0))
+    storage = list_storage(lists, counts)
     return hdr, {
         "lighting_computations": lighting,
         "exact_lighting_computations": exact,
         "false_positive_rate": jnp.where(lighting > 0, 1.0 - exact / jnp.maximum(lighting, 1.0), 0.0),
-        "light_list_bytes": jnp.int32(4 * lists.size),
+        "light_list_bytes": storage["light_list_bytes"],
         "clusters": clusters.count,
         "cluster_overflow": jnp.maximum(clusters.count - cluster_capacity, 0),
-        "cluster_list_overflow": jnp.sum(jnp.maximum(counts - lists.shape[1], 0)),
+        "cluster_list_overflow": storage["group_overflow"],
         "max_lights_per_cluster": jnp.max(counts, initial=0),
+        **cluster_stats,
         **stats,
+        **list_memory_counters(lists, counts),
         "lights": jnp.int32(lights.count),
     }
 
@@ -581,12 +603,14 @@ def _shade(params, surface, scene, shadow, options):
 
 def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, normal_bins, bounds, normal_cones,
                    assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity,
-                   grid_capacity):
+                   grid_capacity, unique_clusters, page_size, page_capacity, list_layout, list_memory_capacity):
     """Clustered deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     options = dict(distribution=distribution, light_chunk=light_chunk, tile=tile, normal_bins=normal_bins,
                    bounds=bounds, normal_cones=normal_cones, assignment=assignment, cluster_capacity=cluster_capacity,
                    cluster_light_capacity=cluster_light_capacity, tree_branching=tree_branching,
-                   frontier_capacity=frontier_capacity, grid_capacity=grid_capacity)
+                   frontier_capacity=frontier_capacity, grid_capacity=grid_capacity, unique_clusters=unique_clusters,
+                   page_size=page_size, page_capacity=page_capacity, list_layout=list_layout,
+                   list_memory_capacity=list_memory_capacity)
     hdr, counters = _shade(params, {key: inputs[key] for key in DEFERRED_INPUTS}, scene, inputs.get("shadow"), options)
     return {"hdr": hdr}, counters
 
@@ -603,12 +627,17 @@ CLUSTERED_OPTIONS = SHADING_OPTIONS + (
     Option("assignment", "auto", one_of("auto", "tree", "brute_force", "grid"),
            "light assignment: through the light tree, every cluster × light pair, by binning each light into its "
            "(tile, slice) cells (position-only keys), or auto (brute force up to 2^25 pairs, the tree beyond)"),
+    Option("unique_clusters", "sort", one_of(*UNIQUE_CLUSTERS),
+           "how the occupied clusters are found: one sort of every key (Fig. 5), a sort within each tile (sec. 4.2), "
+           "or a virtual page table (sec. 4.3, Pt)"),
+    Option("page_size", 4096, one_of(*PAGE_SIZES), "keys per page of the page table (unique_clusters = page_table)"),
+    Option("page_capacity", 256, integer(1), "physical pages of the page table (grown by the entry points on overflow)"),
     Option("cluster_capacity", 1024, integer(1), "occupied clusters kept (grown by the entry points on overflow)"),
-    Option("cluster_light_capacity", 128, integer(1), "light slots per cluster list (grown by the entry points on overflow)"),
+    Option("cluster_light_capacity", 128, integer(1), "light slots per cluster list of the padded layout (grown by the entry points on overflow)"),
     Option("tree_branching", 32, integer(2), "children per light-tree node (32 as in the paper)"),
     Option("frontier_capacity", 16384, integer(1), "(cluster, node) pairs kept per tree level (grown by the entry points on overflow)"),
     Option("grid_capacity", 1 << 20, integer(1), "(cell, light) candidates of grid assignment (grown by the entry points on overflow)"),
-)
+) + LIST_LAYOUT_OPTIONS
 CLUSTERED_CAPACITIES = (
     Capacity("cluster_capacity", "cluster_overflow", "occupied clusters; the samples of the excess get no lights",
              needed="clusters"),
@@ -618,9 +647,12 @@ CLUSTERED_CAPACITIES = (
              "is dropped with its lights", needed="max_frontier", when=(("assignment", "tree"),)),
     Capacity("grid_capacity", "grid_overflow", "(tile, slice) cells × light candidates of grid assignment; the excess "
              "is dropped", needed="grid_candidates", when=(("assignment", "grid"),)),
+    Capacity("page_capacity", "page_overflow", "physical pages of the page table; the samples of keys in the excess "
+             "pages get no cluster", needed="pages_allocated", when=(("unique_clusters", "page_table"),)),
+    LIST_MEMORY_CAPACITY,
 )
 CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
-    Counter("light_list_bytes", "bytes of the per-cluster light index lists (4 × cluster slots × list slots)"),
+    Counter("light_list_bytes", "bytes of the per-cluster light lists (4 × cluster slots × list slots; packed: 4 × (entries + 2 × cluster slots))"),
     Counter("clusters", "occupied clusters found (before truncation to cluster_capacity)"),
     Counter("cluster_overflow", "occupied clusters past cluster_capacity"),
     Counter("cluster_list_overflow", "lights dropped from full cluster lists"),
@@ -632,11 +664,15 @@ CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
     Counter("max_frontier", "the largest traversal frontier before truncation"),
     Counter("grid_overflow", "grid-assignment candidates dropped past grid_capacity"),
     Counter("grid_candidates", "(tile, slice) cell × light candidates of grid assignment (0 otherwise), occupied or not"),
-) + SHADING_COUNTERS[1:]
-CLUSTERED_NOTES = ("Missing from Paper II: the tile-local sort and the page tables (Pt) for finding unique clusters "
-                   "(here one global sort and compaction, Fig. 5), the packed light-index list (here a padded [C, L] "
-                   "array), the warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed "
-                   "capacity), MSAA and transparency. Spot lights are culled as cones, not as the paper's spheres.")
+    Counter("keys_sorted", "cluster keys passed through a sort to find the clusters (0 with the page table)"),
+    Counter("sort_length", "keys per sort: H·W for the global sort, tile² for the tile-local sorts, 0 with the page table"),
+    Counter("pages_allocated", "virtual pages flagged and given a physical page (0 without the page table)"),
+    Counter("page_overflow", "flagged pages past page_capacity"),
+) + LIST_MEMORY_COUNTERS + SHADING_COUNTERS[1:]
+CLUSTERED_NOTES = ("Missing from Paper II: the single-pass page allocation (here the paper's two passes), the "
+                   "warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed capacity), MSAA "
+                   "and transparency. Spot lights are culled as cones, not as the paper's spheres. Explicit bounds "
+                   "work with the page table here (a segment reduction), which the paper did not implement.")
 # The generic tests take the light tree (its frontier capacity among the capacities they force small);
 # brute-force assignment, "auto"'s choice at these sizes, is checked against it in tests/test_clustered.py.
 CLUSTERED_EXAMPLE = {"tile": 8, "tree_branching": 4, "cluster_capacity": 256, "cluster_light_capacity": 32,

@@ -26,17 +26,25 @@ cube onto the hull of its corners' images. A perspective sphere with d_c − R <
 or crossing the near plane) covers the whole screen; one with d_c + R ≤ 0 (behind the eye) no tile.
 Depth bounds (option ``depth_bounds``): per tile [z_min, z_max] of the view depth of its covered
 pixels; a light is kept only where [d_c − R, d_c + R] overlaps it (tiles without samples keep none).
-Lists: count → scan → fill into a fixed [T, C] array (C = min(``tile_capacity``, N)): per tile the
-count of overlapping lights, an exclusive scan over the lights giving each its slot, and a scatter of
-the light indices into slots < C; lights past C are dropped and counted (``tile_list_overflow``), and the
-entry points grow the capacity to ``max_lights_per_tile``. Olsson's packed list (per-tile offset and
-size into one concatenated index list) becomes this padded array, because XLA needs static shapes.
+Lists (``list_layout``; :mod:`gpupro.shading.light_lists`), count → scan → fill:
+- "padded" (the default): a fixed [T, C] array (C = min(``tile_capacity``, N)): per tile the count of
+  overlapping lights, an exclusive scan over the lights giving each its slot, and a scatter of the light
+  indices into slots < C; lights past C are dropped and counted (``tile_list_overflow``), and the entry
+  points grow the capacity to ``max_lights_per_tile``. Memory 4 · T · C bytes.
+- "packed": the paper's three arrays (Fig. 1): the light grid of (o_t, c_t) per tile, o_t = Σ_{s<t} n_s
+  the exclusive scan of the tiles' list lengths n_t, and one tile light index list of M =
+  ``list_memory_capacity`` entries (the global light list is ``lights``); pixel shading reads light i of
+  its tile at ``indices[o_t + i]``, i < c_t. No list has a capacity of its own: only Σ_t n_t > M loses
+  lights (those past entry M, counted in ``list_memory_overflow``; the entry points grow M to
+  ``list_memory_needed``). Memory 4 · (M + 2T) bytes. XLA needs static shapes, so M is a fixed capacity
+  where the paper sizes its index list on the CPU each frame.
 
 Counters: ``lighting_computations`` Σ_covered |list|; ``exact_lighting_computations`` Σ_covered of the
 listed lights whose influence truly reaches the pixel (distance to the light's position, or to a
 capsule's segment, < range, and inside the outer cone for spots; with no overflow, every such light
 is listed, the bounds being conservative);
-``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated).
+``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated); ``light_list_bytes`` the
+memory of the lists in their layout; ``list_memory_needed`` Σ_t n_t in either layout.
 """
 
 from __future__ import annotations
@@ -47,8 +55,9 @@ from gpupro.numerics import einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import light_spheres
+from gpupro.shading.light_lists import LIST_LAYOUTS, kept_lengths, list_storage, pack_light_lists
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
-from gpupro.technique import BOOLEAN, Capacity, Counter, Option, Technique, integer, register
+from gpupro.technique import BOOLEAN, Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import (
     DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW,
 )
@@ -159,19 +168,29 @@ def from_tiles(tiled, shape, *, tile: int):
     return image.reshape((rows * tile, cols * tile) + tiled.shape[2:])[: shape[0], : shape[1]]
 
 
+def fill_lists(overlap, *, list_layout: str, capacity: int, list_memory_capacity: int):
+    """Light lists of ``overlap`` bool [G, N] in ``list_layout`` (static): "padded" int32 [G, C] with C =
+    min(``capacity``, N) (:func:`fill_light_lists`), or "packed" :class:`gpupro.shading.light_lists.PackedLists`
+    into ``list_memory_capacity`` entries. Returns ``(lists, counts int32 [G])``, counts before truncation."""
+    if list_layout == "packed":
+        return pack_light_lists(overlap, memory_capacity=list_memory_capacity)
+    return fill_light_lists(overlap, min(capacity, overlap.shape[1]))
+
+
 def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, tile: int, tile_capacity: int,
-                depth_bounds: bool):
+                depth_bounds: bool, list_layout: str = "padded", list_memory_capacity: int = 0):
     """Per-tile light lists of ``lights`` for the samples of ``view_depth``, ``coverage`` [H, W].
 
-    ``tile`` (static) pixels per tile side; ``tile_capacity`` (static) list slots; ``depth_bounds``
-    (static) cull by per-tile depth ranges. Returns ``(lists int32 [T, C], counts int32 [T])`` with
-    C = min(tile_capacity, N) and counts before truncation.
+    ``tile`` (static) pixels per tile side; ``tile_capacity`` (static) list slots of the padded layout;
+    ``depth_bounds`` (static) cull by per-tile depth ranges; ``list_layout``, ``list_memory_capacity``
+    (static) as in :func:`fill_lists`. Returns ``(lists, counts int32 [T])``: padded int32 [T, C] with
+    C = min(tile_capacity, N), or packed lists; counts before truncation.
     """
     centre, radius = light_spheres(lights)
     rect, light_depth = screen_bounds(centre, radius, camera)
     bounds = tile_depth_bounds(view_depth, coverage, tile=tile) if depth_bounds else None
     overlap = tile_overlaps(rect, light_depth, bounds, tiles_yx=tile_grid(jnp.shape(coverage), tile=tile), tile=tile)
-    return fill_light_lists(overlap, min(tile_capacity, lights.count))
+    return fill_lists(overlap, list_layout=list_layout, capacity=tile_capacity, list_memory_capacity=list_memory_capacity)
 
 
 def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
@@ -179,10 +198,11 @@ def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, a
     """Shades every pixel with the lights of its tile's list: the light loop of tiled shading.
 
     ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
-    ([H, W] or [H, W, 3]); ``lists`` int32 [T, C] light indices per tile (−1 in empty slots); ``lights``
+    ([H, W] or [H, W, 3]); ``lists`` light indices per tile, padded int32 [T, C] (−1 in empty slots) or
+    :class:`gpupro.shading.light_lists.PackedLists`; ``lights``
     N lights; ``camera`` the scene camera (its eye shades); ``ambient``, ``background`` [3]; ``shadow``
     None or [H, W, K]; static: ``distribution``, ``light_chunk`` (list slots per scan step), ``tile``;
-    ``list_of_group``: None (tile t reads row t), or int32 [T]: the row of ``lists`` [R, C] each tile
+    ``list_of_group``: None (tile t reads list t), or int32 [T]: the list (of R) each tile
     reads (see :func:`gpupro.shading.light_loop.accumulate_light_lists`). Returns ``(hdr float32 [H, W, 3], reached float32 [T, t²])``: ``reached`` counts the listed lights
     whose influence truly reaches each pixel.
     """
@@ -203,7 +223,7 @@ def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, a
 def list_counters(coverage, lists, counts, evaluated, reached, lights: Lights, *, tile: int) -> dict:
     """The counters of :data:`TILED_COUNTERS` (module docstring) of one frame's per-tile lists.
 
-    ``coverage`` [H, W]; ``lists`` int32 [T, C]; ``counts`` int32 [T] list lengths before truncation;
+    ``coverage`` [H, W]; ``lists`` padded int32 [T, C] or packed; ``counts`` int32 [T] list lengths before truncation;
     ``evaluated`` [T] lights each tile's pixels evaluate; ``reached`` [T, t²] from
     :func:`shade_light_lists`; ``lights`` N lights; ``tile`` (static) pixels.
     """
@@ -211,20 +231,22 @@ def list_counters(coverage, lists, counts, evaluated, reached, lights: Lights, *
     pixels = jnp.sum(covered, axis=1, dtype=jnp.int32).astype(jnp.float32)
     lighting = jnp.sum(pixels * jnp.asarray(evaluated, jnp.float32))
     exact = jnp.sum(jnp.where(covered, reached, 0.0))
+    storage = list_storage(lists, counts)
     return {
         "lighting_computations": lighting,
         "exact_lighting_computations": exact,
         "false_positive_rate": jnp.where(lighting > 0, 1.0 - exact / jnp.maximum(lighting, 1.0), 0.0),
-        "light_list_bytes": jnp.int32(4 * lists.size),
-        "tiles": jnp.int32(lists.shape[0]),
-        "tile_list_overflow": jnp.sum(jnp.maximum(counts - lists.shape[1], 0)),
+        "light_list_bytes": storage["light_list_bytes"],
+        "tiles": jnp.int32(covered.shape[0]),
+        "tile_list_overflow": storage["group_overflow"],
         "max_lights_per_tile": jnp.max(counts, initial=0),
         "lights": jnp.int32(lights.count),
     }
 
 
 def shade_tiled(surface: dict, view_depth, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
-                distribution: str, light_chunk: int | None, tile: int, tile_capacity: int, depth_bounds: bool):
+                distribution: str, light_chunk: int | None, tile: int, tile_capacity: int, depth_bounds: bool,
+                list_layout: str = "padded", list_memory_capacity: int = 0):
     """Tiled shading of per-pixel surfaces: cull into per-tile lists, shade each pixel with its tile's.
 
     ``surface``: dict with the G-buffer entries of
@@ -232,15 +254,23 @@ def shade_tiled(surface: dict, view_depth, lights: Lights, camera: Camera, *, am
     ``shade_deferred``); ``view_depth`` [H, W] world units along the viewing axis; ``lights`` N lights;
     ``camera`` the scene camera (its eye shades, its matrices bound the lights); ``ambient``,
     ``background`` [3]; ``shadow`` None or [H, W, K]; static: ``distribution``, ``light_chunk`` (list
-    slots per scan step), ``tile``, ``tile_capacity``, ``depth_bounds``.
+    slots per scan step), ``tile``, ``tile_capacity``, ``depth_bounds``, ``list_layout``,
+    ``list_memory_capacity``.
     Returns ``(hdr float32 [H, W, 3], counters)`` (module docstring).
     """
     lists, counts = cull_lights(lights, camera, view_depth, surface["coverage"], tile=tile,
-                                tile_capacity=tile_capacity, depth_bounds=depth_bounds)
+                                tile_capacity=tile_capacity, depth_bounds=depth_bounds, list_layout=list_layout,
+                                list_memory_capacity=list_memory_capacity)
     hdr, reached = shade_light_lists(surface, lists, lights, camera, ambient=ambient, background=background,
                                      shadow=shadow, distribution=distribution, light_chunk=light_chunk, tile=tile)
-    evaluated = jnp.minimum(counts, lists.shape[1])
-    return hdr, list_counters(surface["coverage"], lists, counts, evaluated, reached, lights, tile=tile)
+    counters = list_counters(surface["coverage"], lists, counts, kept_lengths(lists, counts), reached, lights, tile=tile)
+    return hdr, {**counters, **list_memory_counters(lists, counts)}
+
+
+def list_memory_counters(lists, counts) -> dict:
+    """The :data:`LIST_MEMORY_COUNTERS` of ``lists`` (either layout) of lengths ``counts`` [G]."""
+    storage = list_storage(lists, counts)
+    return {name: storage[name] for name in ("list_memory_overflow", "list_memory_needed")}
 
 
 def view_depth_of(position, camera: Camera):
@@ -249,21 +279,39 @@ def view_depth_of(position, camera: Camera):
     return -(einsum("j,hwj->hw", view[2, :3], jnp.asarray(position, jnp.float32)) + view[2, 3])
 
 
-def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds):
+def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds, list_layout,
+                   list_memory_capacity):
     """Tiled deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     hdr, counters = shade_tiled({key: inputs[key] for key in DEFERRED_INPUTS}, inputs["view_depth"], scene.lights,
                                 scene.camera, ambient=params["ambient"], background=params["background"],
                                 shadow=inputs.get("shadow"), distribution=distribution, light_chunk=light_chunk,
-                                tile=tile, tile_capacity=tile_capacity, depth_bounds=depth_bounds)
+                                tile=tile, tile_capacity=tile_capacity, depth_bounds=depth_bounds,
+                                list_layout=list_layout, list_memory_capacity=list_memory_capacity)
     return {"hdr": hdr}, counters
 
 
 apply_forward = forward_of(apply_deferred, "Tiled forward shading of the rasterizer's fragments → ``hdr`` [H, W, 3].")
 
 
+LIST_LAYOUT_OPTIONS = (
+    Option("list_layout", "padded", one_of(*LIST_LAYOUTS),
+           "light lists as padded rows of a per-list capacity, or packed (offset, count) into one index array (Paper I, Fig. 1)"),
+    Option("list_memory_capacity", 1 << 16, integer(1),
+           "light index entries of the packed lists, all lists together (grown by the entry points on overflow)"),
+)
+LIST_MEMORY_CAPACITY = Capacity("list_memory_capacity", "list_memory_overflow", "light index entries of the packed "
+                                "lists; the lists past the end lose their excess", needed="list_memory_needed",
+                                when=(("list_layout", "packed"),))
+LIST_MEMORY_COUNTERS = (
+    Counter("list_memory_overflow", "light index entries past list_memory_capacity (packed layout, whose light_list_bytes "
+            "are 4 × (entries + 2 × lists); 0 padded)"),
+    Counter("list_memory_needed", "light index entries the lists need, Σ of their lengths before truncation"),
+)
+"""The packed layout's option, capacity and counters, shared by tiled and clustered shading."""
+
 TILED_OPTIONS = SHADING_OPTIONS + (
     Option("tile", 32, integer(1), "tile side in pixels (8, 16, 32, …)"),
-    Option("tile_capacity", 64, integer(1), "light slots per tile list (grown by the entry points on overflow)"),
+    Option("tile_capacity", 64, integer(1), "light slots per tile list of the padded layout (grown by the entry points on overflow)"),
     Option("depth_bounds", True, BOOLEAN, "cull lights outside each tile's [min, max] view depth"),
 )
 TILED_CAPACITIES = (
@@ -278,8 +326,7 @@ TILED_COUNTERS = SHADING_COUNTERS[:1] + (
     Counter("tile_list_overflow", "lights dropped from full tile lists"),
     Counter("max_lights_per_tile", "the longest tile list before truncation"),
 ) + SHADING_COUNTERS[1:]
-TILED_NOTES = ("Missing from Paper I: the packed light-index list (offsets and sizes into one concatenated list; "
-               "here a padded [T, C] array), the single-kernel variant with per-tile frustum planes, "
+TILED_NOTES = ("Missing from Paper I: the single-kernel variant with per-tile frustum planes, "
                "transparency (far-Z-only culling in a forward pass over blended geometry) and MSAA; screen "
                "bounds are the projected corners of each sphere's bounding cube, not the tight tangent-plane "
                "bound of Lengyel / Sigg et al.")
@@ -294,10 +341,10 @@ register(Technique(
     apply=apply_deferred,
     inputs=tuple(b for b in SURFACE if b.name in DEFERRED_INPUTS + ("view_depth",)) + (SHADOW,),
     outputs=(HDR,),
-    options=TILED_OPTIONS,
+    options=TILED_OPTIONS + LIST_LAYOUT_OPTIONS,
     params=SHADING_PARAMS,
-    capacities=TILED_CAPACITIES,
-    counters=TILED_COUNTERS,
+    capacities=TILED_CAPACITIES + (LIST_MEMORY_CAPACITY,),
+    counters=TILED_COUNTERS + LIST_MEMORY_COUNTERS,
     reference="deferred",
     example_options=TILED_EXAMPLE,
     notes=TILED_NOTES,
@@ -312,10 +359,10 @@ register(Technique(
     apply=apply_forward,
     inputs=FRAGMENTS + (SHADOW,),
     outputs=(HDR,),
-    options=TILED_OPTIONS,
+    options=TILED_OPTIONS + LIST_LAYOUT_OPTIONS,
     params=SHADING_PARAMS,
-    capacities=TILED_CAPACITIES,
-    counters=TILED_COUNTERS,
+    capacities=TILED_CAPACITIES + (LIST_MEMORY_CAPACITY,),
+    counters=TILED_COUNTERS + LIST_MEMORY_COUNTERS,
     reference="deferred",
     example_options=TILED_EXAMPLE,
     notes=TILED_NOTES + " Tiled forward here shades opaque fragments only, with depth bounds from their view depth "
