@@ -88,7 +88,8 @@ from gpupro.technique import Check, Counter, Option, Technique, integer, one_of,
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.lights.tiled import (
-    TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles, shade_light_lists, tile_grid, to_tiles,
+    LIGHT_TILE_TESTS, TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles, shade_light_lists, tile_grid,
+    to_tiles,
 )
 from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
@@ -414,7 +415,7 @@ OPTIONS = SHADING_OPTIONS + (
 )
 COUNTERS = TILED_COUNTERS + (
     Counter("tiles_culled_against", "tiles the culler runs on (every tile, sky too)"),
-    Counter("light_tile_tests", "lights × tiles tested (float32)"),
+    LIGHT_TILE_TESTS,
     Counter("light_volume_tests", "lights × tile volumes tested: 1 per tile, or 3 with a depth partition (float32)"),
     Counter("near_list_lights", "Σ over tiles of the first (near, or only) partition's list length"),
     Counter("far_list_lights", "Σ over tiles of the far partition's list length (0 without a partition)"),
