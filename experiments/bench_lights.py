@@ -15,6 +15,7 @@ Usage::
     python experiments/bench_lights.py                                         # all lights techniques, 1024 and 2400 lights, 1920x1080
     python experiments/bench_lights.py --techniques deferred,tiled_deferred --lights 64 --resolution 320x180
     python experiments/bench_lights.py --option tiled_deferred.tile=16 --json lights.json
+    python experiments/bench_lights.py --techniques tiled_deferred --option 'tiled_deferred.kernel="single"'
 """
 
 from __future__ import annotations
@@ -71,9 +72,12 @@ def _clustered_stages(inputs, scene, options):
 
 
 def _tiled_stages(inputs, scene, options):
-    """Tiled shading's light assignment: per-tile lists from screen bounds (and depth bounds)."""
+    """Tiled shading's light assignment: per-tile lists from screen bounds (and depth bounds); none for the
+    single kernel, which tests the lights while it shades."""
     from gpupro.techniques.lights.tiled import cull_lights
 
+    if options["kernel"] == "single":
+        return {}
     cull = lambda lights, camera, depth, coverage: cull_lights(
         lights, camera, depth, coverage, tile=options["tile"], tile_capacity=options["tile_capacity"],
         depth_bounds=options["depth_bounds"])

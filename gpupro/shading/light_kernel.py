@@ -169,7 +169,7 @@ def _kernel(*refs, n_columns: int, n_group_arrays: int, n_outputs: int, n_lights
             passed = passes(row[_LIGHT_ARRAYS:]) & (index < n_lights)  # [1, L]
             light = _light_of(row[:_LIGHT_ARRAYS])
 
-            def evaluate():
+            def evaluate():  # the passing lights' terms only, as the XLA path's mask (at every point, sky too)
                 rgb = [jnp.where(passed, c, 0.0) for c in term(column, light)]
                 reached = _reaches(tuple(column[:3]), light) & passed
                 return add(total, rgb + [reached.astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)])
@@ -368,11 +368,11 @@ def light_list_sums(points, terms: dict, lights: Lights, lists, rows, *, block_p
                      block_pixels=block_pixels, count_reached=True, interpret=interpret)
 
 
-def tested_light_sums(points, terms: dict, lights: Lights, test: GroupTest, *, block_pixels: int = BLOCK_PIXELS,
+def culled_light_sums(points, terms: dict, lights: Lights, test: GroupTest, *, block_pixels: int = BLOCK_PIXELS,
                       lights_per_step: int = LIGHTS_PER_STEP, interpret: bool = False):
     """Σ over the lights passing each group's ``test`` of brdf · E⊥ · max(n·l, 0), as one kernel over blocks
     of a group's points (:func:`light_sums` with a test): the fast form of
-    :func:`gpupro.shading.light_loop.accumulate_tested_lights` (GGX, no shadows).
+    :func:`gpupro.shading.light_loop.accumulate_culled_lights` (GGX, no shadows).
 
     ``points`` [P, 3], G groups of P / G consecutive points; ``terms`` the points' GGX
     :func:`gpupro.shading.brdfs.view_terms` ([P, 3] and [P]); ``lights`` N ≥ 1 lights; ``test`` a

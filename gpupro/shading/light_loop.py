@@ -420,7 +420,7 @@ class GroupTest(typing.NamedTuple):
         return passes([jnp.asarray(a)[None, :] for a in self.light_arrays])
 
 
-def accumulate_tested_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, test: GroupTest,
+def accumulate_culled_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, test: GroupTest,
                              *, shadow=None, distribution: str = "ggx", light_chunk: int | None = None,
                              light_loop: str = "auto"):
     """Σ over the lights that pass each group's ``test`` of brdf · E⊥ · max(n·l, 0) · s: the all-lights loop
@@ -432,7 +432,7 @@ def accumulate_tested_lights(points, normals, views, base_color, roughness, meta
     the G groups; ``shadow``: None or [G, Q, K] visibility of the first K ≤ N lights; ``distribution``,
     ``light_chunk`` (static) as in :func:`accumulate_lights`; ``light_loop`` (static) "scan" (the chunked
     XLA scan over every light, each group's sums masked by ``test.mask()``), "kernel"
-    (:func:`gpupro.shading.light_kernel.tested_light_sums`, which tests a step's lights against the group
+    (:func:`gpupro.shading.light_kernel.culled_light_sums`, which tests a step's lights against the group
     inside the kernel and skips a step none passes; GGX, no shadows; interpreted off GPUs) or "auto" (the
     kernel on GPUs where it applies). Returns ``(radiance [G, Q, 3], reached [G, Q] float32, evaluated [G]
     float32)``: ``reached`` counts the passing lights whose influence truly reaches each point
@@ -446,8 +446,8 @@ def accumulate_tested_lights(points, normals, views, base_color, roughness, meta
                 jnp.zeros((n_groups,), jnp.float32))
     surface = tuple(jnp.asarray(x, jnp.float32) for x in (points, normals, views, base_color, roughness, metallic))
     chunk = min(light_chunk or default_light_chunk(), lights.count)
-    if _surface_light_loop(light_loop, shadow, distribution, "accumulate_tested_lights") == "kernel":
-        return _kernel_tested(surface, lights, list(test.group_arrays), list(test.light_arrays), test.groups,
+    if _surface_light_loop(light_loop, shadow, distribution, "accumulate_culled_lights") == "kernel":
+        return _kernel_culled(surface, lights, list(test.group_arrays), list(test.light_arrays), test.groups,
                               test.passes_of, chunk)
     mask = test.mask()
     shadow = None if shadow is None else jnp.asarray(shadow, jnp.float32)
@@ -461,7 +461,7 @@ def _per_point(mask, n_per_group: int):
 
 
 def _masked_sums(surface, lights: Lights, mask, shadow, distribution: str, chunk: int):
-    """The scan path of :func:`accumulate_tested_lights`: radiance [G, Q, 3], every light evaluated at every
+    """The scan path of :func:`accumulate_culled_lights`: radiance [G, Q, 3], every light evaluated at every
     point and kept where ``mask`` [G, N] passes it."""
     n_groups, n_per_group = surface[0].shape[:2]
     flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
@@ -490,29 +490,29 @@ def _masked_reached(points, lights: Lights, mask, chunk: int):
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5, 6))
-def _kernel_tested(surface, lights: Lights, group_arrays, light_arrays, groups: int, passes_of, chunk: int):
-    """:func:`accumulate_tested_lights` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
+def _kernel_culled(surface, lights: Lights, group_arrays, light_arrays, groups: int, passes_of, chunk: int):
+    """:func:`accumulate_culled_lights` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
     shadows; interpreted off GPUs); reverse mode through the scan path."""
-    from gpupro.shading.light_kernel import tested_light_sums  # it builds on this module
+    from gpupro.shading.light_kernel import culled_light_sums  # it builds on this module
 
     points, normals, views, base_color, roughness, metallic = surface
     n_groups, n_per_group = points.shape[:2]
     flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
     terms = view_terms(flat(normals), flat(views), base_color=flat(base_color), roughness=flat(roughness),
                        metallic=flat(metallic))
-    radiance, reached, evaluated = tested_light_sums(flat(points), terms, lights,
+    radiance, reached, evaluated = culled_light_sums(flat(points), terms, lights,
                                                      GroupTest(groups, group_arrays, light_arrays, passes_of),
                                                      interpret=jax.default_backend() != "gpu")
     return (radiance.reshape(n_groups, n_per_group, 3), reached.reshape(n_groups, n_per_group),
             evaluated.reshape(n_groups, n_per_group)[:, 0])
 
 
-def _kernel_tested_forward(surface, lights, group_arrays, light_arrays, groups, passes_of, chunk):
-    result = _kernel_tested(surface, lights, group_arrays, light_arrays, groups, passes_of, chunk)
+def _kernel_culled_forward(surface, lights, group_arrays, light_arrays, groups, passes_of, chunk):
+    result = _kernel_culled(surface, lights, group_arrays, light_arrays, groups, passes_of, chunk)
     return result, (surface, lights, group_arrays, light_arrays)
 
 
-def _kernel_tested_backward(groups, passes_of, chunk, saved, cotangent):
+def _kernel_culled_backward(groups, passes_of, chunk, saved, cotangent):
     surface, lights, group_arrays, light_arrays = saved
     mask = GroupTest(groups, group_arrays, light_arrays, passes_of).mask()
     _, pullback = jax.vjp(lambda s, l: _masked_sums(s, l, mask, None, "ggx", chunk), surface, lights)
@@ -521,7 +521,7 @@ def _kernel_tested_backward(groups, passes_of, chunk, saved, cotangent):
     return d_surface, d_lights, zeros(group_arrays), zeros(light_arrays)
 
 
-_kernel_tested.defvjp(_kernel_tested_forward, _kernel_tested_backward)
+_kernel_culled.defvjp(_kernel_culled_forward, _kernel_culled_backward)
 
 
 LIGHT_LOOPS = ("auto", "scan", "kernel")

@@ -1,4 +1,5 @@
-"""Tiled deferred and tiled forward shading: per-tile light lists from screen-space light bounds.
+"""Tiled deferred and tiled forward shading: per-tile light lists from screen-space light bounds, in
+the multi-kernel and the single-kernel form.
 
 Source: Olsson's thesis (seed), Paper I, "Tiled Shading" (Olsson & Assarsson, JGT 15(4), 2011): the
 tiled deferred algorithm, steps 2–5, its data structure (Fig. 1), the depth-range optimisation and the
@@ -31,12 +32,48 @@ count of overlapping lights, an exclusive scan over the lights giving each its s
 the light indices into slots < C; lights past C are dropped and counted (``tile_list_overflow``), and the
 entry points grow the capacity to ``max_lights_per_tile``. Olsson's packed list (per-tile offset and
 size into one concatenated index list) becomes this padded array, because XLA needs static shapes.
+This is the multi-kernel form (option ``kernel`` = "multi", Paper I secs. 2 and 6: depth range, grid
+and shading as separate steps; the form Olsson reports).
+
+Single kernel (``kernel`` = "single"; Paper I sec. 7, after Andersson 09 and Lauritzen 10, which
+Olsson ported to CUDA and found "very close" to the multi-kernel form). One thread group per tile, one
+thread per fragment: the group reduces its tile's [z_min, z_max], tests every light against the tile,
+builds the tile's list in on-chip memory and shades from it, so no list reaches global memory. Here:
+1. per light, once (O(N), tile-independent, as the lights' view-space transform): the screen rectangle
+   and depth extent of :func:`screen_bounds` (six floats);
+2. on GPUs (GGX, no shadows), one Pallas kernel (:func:`gpupro.shading.light_kernel.culled_light_sums`)
+   with a program per tile (per block of 256 pixels of one tile for t > 16: each program reduces the
+   whole tile's depth range, t² values, and shades its block): it reduces [z_min, z_max]
+   (:func:`covered_depth_range`), walks every light ``LIGHTS_PER_STEP`` at a time, tests them against
+   the tile with the multi kernel's test written once on components (:func:`bound_meets_tile`:
+   rectangle against the tile's pixel square, depth extent against its depth range), skips a step
+   none passes (one uniform branch per program) and adds the surface terms of those that pass to
+   per-pixel sums held in registers;
+3. elsewhere (CPU, shadows, Beckmann) and for gradients, the chunked XLA scan over every light
+   (:func:`gpupro.shading.light_loop.accumulate_culled_lights`), each tile's sums masked by the same
+   test, evaluated for all tiles and lights at once ([T, N] booleans, no list and no capacity).
+The lights passing a tile are exactly the multi kernel's list, so the image and the counters
+``lighting_computations`` and ``exact_lighting_computations`` are the same. Departures: the test is
+the multi kernel's screen rectangle and depth range, not six frustum planes against the light's
+sphere; and the list is never materialised, not even in shared memory: the program applies each
+light where it passes instead of appending it to a list, so the form needs no shared-memory atomics
+and no group barrier (Triton exposes neither), and with nothing stored it has no capacity that can
+overflow (``tile_capacity`` is unused; ``tile_list_overflow`` is 0). The cost is that the tile walks
+all N lights while it shades, where the paper's group tests them in parallel first (N / t² lights per
+thread) and then loops over its short list; Olsson's remark that tiles in a row or column share
+planes, and that a tile between two tiles a light affects is affected too, is not exploited (nor by
+the multi kernel). The form is an option of this technique rather than of ``tiled_culling`` (GPU Pro
+6 VI.1, the same family, whose tiled deferred also culls and shades per tile) because it is Paper I's
+variant of this very algorithm: the same bounds, the same per-tile lights and counters, so the two forms
+compare the structure alone (lists in global memory or none), as Olsson compared them.
 
 Counters: ``lighting_computations`` Σ_covered |list|; ``exact_lighting_computations`` Σ_covered of the
 listed lights whose influence truly reaches the pixel (distance to the light's position, or to a
 capsule's segment, < range, and inside the outer cone for spots; with no overflow, every such light
 is listed, the bounds being conservative);
-``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated).
+``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated); ``light_tile_tests``
+T · N, the (tile, light) pairs tested (both forms); ``light_list_bytes`` 4 · T · C, 0 for the single
+kernel, whose lists stay on chip (here: are never stored).
 """
 
 from __future__ import annotations
@@ -49,7 +86,7 @@ from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import light_spheres
 from gpupro.shading.light_loop import (
-    GroupTest, accumulate_light_lists, accumulate_tested_lights, compose_radiance, view_directions,
+    GroupTest, accumulate_light_lists, accumulate_culled_lights, compose_radiance, view_directions,
 )
 from gpupro.technique import BOOLEAN, Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import (
@@ -321,11 +358,11 @@ def shade_tiled_single(surface: dict, view_depth, lights: Lights, camera: Camera
 
     Arguments as :func:`shade_tiled` (no ``tile_capacity``: nothing can overflow; ``light_chunk`` the
     lights per step of the XLA scan). On GPUs (GGX, no shadows) one Pallas kernel does it all
-    (:func:`gpupro.shading.light_kernel.tested_light_sums`); elsewhere, and for gradients, the chunked
+    (:func:`gpupro.shading.light_kernel.culled_light_sums`); elsewhere, and for gradients, the chunked
     XLA scan over all lights masked per tile. Returns ``(hdr float32 [H, W, 3], counters)``.
     """
     test = tile_test(lights, camera, view_depth, surface["coverage"], tile=tile, depth_bounds=depth_bounds)
-    loop = lambda *tiled, shadow: accumulate_tested_lights(*tiled, lights, test, shadow=shadow,
+    loop = lambda *tiled, shadow: accumulate_culled_lights(*tiled, lights, test, shadow=shadow,
                                                            distribution=distribution, light_chunk=light_chunk)
     hdr, reached, evaluated = _shade_tiles(surface, camera, loop, ambient=ambient, background=background,
                                            shadow=shadow, tile=tile)

@@ -421,7 +421,8 @@ COUNTERS = TILED_COUNTERS + (
     Counter("far_list_lights", "Σ over tiles of the far partition's list length (0 without a partition)"),
 )
 NOTES = ("Missing from GPU Pro 6 VI.1: the single-kernel tiled deferred that shades from shared memory (here "
-         "culling and shading are two steps of one jitted frame), the atomics (count → scan → fill gives the "
+         "culling and shading are two steps of one jitted frame; tiled_deferred's kernel = \"single\" is that "
+         "form with Paper I's screen-rectangle test instead of the chapter's planes), the atomics (count → scan → fill gives the "
          "same lists, in ascending order), transparency and MSAA, and the benchmark timings (see the issue's "
          "GPU benchmark). Departures: spots are also culled as cones, capsules as capsules; with a depth partition each partition's "
          "list is also tested against the whole tile; tile corners use the true pixel-to-NDC mapping of the "
