@@ -79,7 +79,7 @@ def test_interpreted_kernel_equals_the_xla_path(tile, depth_bounds):
     assert 0 < float(jnp.min(evaluated)) and float(jnp.max(evaluated)) < LIGHTS["hundred"].count  # tiles do cull
 
 
-@pytest.mark.slow  # 16 s in the interpreter on the 2-core CPU; the default cases cover one program per tile
+@pytest.mark.slow  # 10–13 s in the interpreter on the 2-core CPU; the default case covers one program per tile
 def test_kernel_blocks_of_one_tile_and_steps_of_several_lights():
     """32 × 32 tiles (partial at 48 × 48) shaded by 4 programs of 256 pixels, each reducing the whole tile's
     depth range; 4 lights a step, so steps mix passing and failing lights and the padding after N."""
@@ -131,7 +131,7 @@ def test_light_values_have_brute_force_gradients():
                            _light_gradients(lambda l: shade_deferred(GBUFFER, l, CAMERA.eye, **OPTIONS)[0], lights))
 
 
-@pytest.mark.slow  # 12 s on the 2-core CPU, where the kernel is not used; the GPU runs it
+@pytest.mark.slow  # 9–15 s on the 2-core CPU, where the kernel is not used; the GPU runs it
 def test_gradients_through_the_kernel_are_the_xla_paths():
     """The kernel's reverse mode is the XLA scan's (custom VJP): the same light gradients."""
     lights = LIGHTS["hundred"]

@@ -151,30 +151,30 @@ def _kernel(*refs, n_columns: int, n_group_arrays: int, n_outputs: int, n_lights
     column = [r[...][:, None] for r in column_refs]  # [B, 1]: broadcast against [1, lights_per_step]
     zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
 
-    def lights_at(i):  # [1, L] blocks of every per-light array
-        return [r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in light_refs]
+    def lights_at(i, refs):  # [1, L] blocks of per-light arrays
+        return [r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in refs]
 
     def add(total, blocks):  # [B, L] blocks summed over their lights
         return tuple(t + jnp.sum(b, axis=1) for t, b in zip(total, blocks))
 
     if passes_of is None:
-        step = lambda i, total: add(total, term(column, _light_of(lights_at(i))))
+        step = lambda i, total: add(total, term(column, _light_of(lights_at(i, light_refs))))
     else:
         # The group's test, set up once (e.g. the tile's depth range), then applied to each step's lights.
         passes = passes_of([r[...] for r in group_refs], pl.program_id(0) // blocks_per_group)
 
         def step(i, total):
-            row = lights_at(i)
             index = i * lights_per_step + jax.lax.broadcasted_iota(jnp.int32, (1, lights_per_step), 1)
-            passed = passes(row[_LIGHT_ARRAYS:]) & (index < n_lights)  # [1, L]
-            light = _light_of(row[:_LIGHT_ARRAYS])
+            passed = passes(lights_at(i, light_refs[_LIGHT_ARRAYS:])) & (index < n_lights)  # [1, L]
 
             def evaluate():  # the passing lights' terms only, as the XLA path's mask (at every point, sky too)
+                light = _light_of(lights_at(i, light_refs[:_LIGHT_ARRAYS]))
                 rgb = [jnp.where(passed, c, 0.0) for c in term(column, light)]
                 reached = _reaches(tuple(column[:3]), light) & passed
                 return add(total, rgb + [reached.astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)])
 
-            # One branch for the whole program: a step none of whose lights passes costs only its test.
+            # One branch for the whole program: a step none of whose lights passes reads and tests only its
+            # bounds.
             return jax.lax.cond(jnp.max(passed.astype(jnp.int32)) > 0, evaluate, lambda: total)
 
     total = jax.lax.fori_loop(0, n_steps, step, (zeros,) * n_outputs)

@@ -351,17 +351,22 @@ def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribu
             reached.reshape((n_blocks * items, n_per_group))[unsort])
 
 
+def _kernel_surface(surface):
+    """``surface`` (points [G, Q, 3], normals, views, base colour [G, Q, 3], roughness, metallic [G, Q]) as
+    the kernels take it: ``(points [G · Q, 3], GGX view terms of the G · Q points)``."""
+    points, normals, views, base_color, roughness, metallic = surface
+    flat = lambda x: x.reshape((-1,) + x.shape[2:])
+    return flat(points), view_terms(flat(normals), flat(views), base_color=flat(base_color),
+                                    roughness=flat(roughness), metallic=flat(metallic))
+
+
 def _kernel_light_lists(surface, lights: Lights, lists, rows):
     """:func:`accumulate_light_lists` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
     shadows; interpreted off GPUs)."""
     from gpupro.shading.light_kernel import light_list_sums  # it builds on this module
 
-    points, normals, views, base_color, roughness, metallic = surface
-    n_groups, n_per_group = points.shape[:2]
-    flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
-    terms = view_terms(flat(normals), flat(views), base_color=flat(base_color), roughness=flat(roughness),
-                       metallic=flat(metallic))
-    radiance, reached = light_list_sums(flat(points), terms, lights, lists, jnp.repeat(rows, n_per_group),
+    n_groups, n_per_group = surface[0].shape[:2]
+    radiance, reached = light_list_sums(*_kernel_surface(surface), lights, lists, jnp.repeat(rows, n_per_group),
                                         interpret=jax.default_backend() != "gpu")
     return radiance.reshape(n_groups, n_per_group, 3), reached.reshape(n_groups, n_per_group)
 
@@ -495,12 +500,8 @@ def _kernel_culled(surface, lights: Lights, group_arrays, light_arrays, groups: 
     shadows; interpreted off GPUs); reverse mode through the scan path."""
     from gpupro.shading.light_kernel import culled_light_sums  # it builds on this module
 
-    points, normals, views, base_color, roughness, metallic = surface
-    n_groups, n_per_group = points.shape[:2]
-    flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
-    terms = view_terms(flat(normals), flat(views), base_color=flat(base_color), roughness=flat(roughness),
-                       metallic=flat(metallic))
-    radiance, reached, evaluated = culled_light_sums(flat(points), terms, lights,
+    n_groups, n_per_group = surface[0].shape[:2]
+    radiance, reached, evaluated = culled_light_sums(*_kernel_surface(surface), lights,
                                                      GroupTest(groups, group_arrays, light_arrays, passes_of),
                                                      interpret=jax.default_backend() != "gpu")
     return (radiance.reshape(n_groups, n_per_group, 3), reached.reshape(n_groups, n_per_group),
