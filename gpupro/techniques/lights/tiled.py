@@ -23,8 +23,9 @@ Light bounds (view space, the camera looking down −z; view depth d = −z):
 - directional light: every tile.
 Screen bound of a sphere (centre d_c deep): the pixel rectangle of the projected 8 corners of its
 view-space bounding cube, which holds the projection of the sphere because projection maps the convex
-cube onto the hull of its corners' images. A perspective sphere with d_c − R < near (holding the eye
-or crossing the near plane) covers the whole screen; one with d_c + R ≤ 0 (behind the eye) no tile.
+cube onto the hull of its corners' images. In perspective the cube is first cut at the near plane (no
+sample lies nearer), so a sphere holding the eye or crossing the near plane gets the rectangle of its
+part beyond it; one with d_c + R < near (wholly nearer, e.g. behind the eye) no tile.
 Depth bounds (option ``depth_bounds``): per tile [z_min, z_max] of the view depth of its covered
 pixels; a light is kept only where [d_c − R, d_c + R] overlaps it (tiles without samples keep none).
 Lists: count → scan → fill into a fixed [T, C] array (C = min(``tile_capacity``, N)): per tile the
