@@ -17,6 +17,7 @@ Usage::
     python experiments/bench_lights.py --option tiled_deferred.tile=16 --json lights.json
     python experiments/bench_lights.py --techniques clustered_deferred --option clustered_deferred.unique_clusters='"page_table"' \
         --option clustered_deferred.list_layout='"packed"'        # Paper II's Pt variant with packed lists
+    python experiments/bench_lights.py --techniques tiled_deferred --option 'tiled_deferred.kernel="single"'
 """
 
 from __future__ import annotations
@@ -74,9 +75,12 @@ def _clustered_stages(inputs, scene, options):
 
 
 def _tiled_stages(inputs, scene, options):
-    """Tiled shading's light assignment: per-tile lists from screen bounds (and depth bounds)."""
+    """Tiled shading's light assignment: per-tile lists from screen bounds (and depth bounds); none for the
+    single kernel, which tests the lights while it shades."""
     from gpupro.techniques.lights.tiled import cull_lights
 
+    if options["kernel"] == "single":
+        return {}
     cull = lambda lights, camera, depth, coverage: cull_lights(
         lights, camera, depth, coverage, **{k: options[k] for k in ("tile", "tile_capacity", "depth_bounds", "list_layout",
                                                                     "list_memory_capacity")})

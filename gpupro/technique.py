@@ -168,6 +168,10 @@ class Capacity(typing.NamedTuple):
     small: int = 1
     when: tuple = ()
 
+    def used(self, options: typing.Mapping) -> bool:
+        """Whether the pass ``options`` use this capacity (every ``when`` pair holds)."""
+        return all(options.get(name) == value for name, value in self.when)
+
 
 class Counter(typing.NamedTuple):
     """A work counter a technique reports (scalar per frame), named alike across a family."""

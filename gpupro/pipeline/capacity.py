@@ -22,14 +22,19 @@ MAX_ROUNDS = 24
 """Growth rounds before giving up (each at least doubles a capacity: 2^24 × the default)."""
 
 
+def _used(p) -> list:
+    """The capacities that pass ``p``'s options use (:meth:`gpupro.technique.Capacity.used`)."""
+    return [] if p.technique is None else [c for c in p.technique.capacities if c.used(p.options)]
+
+
 def overflows(pipeline: Pipeline, counters: Mapping[str, Mapping[str, Any]]) -> list[tuple[str, Any, int]]:
-    """``(pass name, capacity, overflow count)`` for every lossy capacity whose counter is above zero
+    """``(pass name, capacity, overflow count)`` for every lossy capacity in use whose counter is above zero
     (the largest value over frames, for counters batched over a camera path)."""
     found = []
     for p in pipeline.passes:
-        if p.technique is None or p.name not in counters:
+        if p.name not in counters:
             continue
-        for capacity in p.technique.capacities:
+        for capacity in _used(p):
             count = int(np.max(np.asarray(counters[p.name].get(capacity.counter, 0))))
             if capacity.lossy and count > 0:
                 found.append((p.name, capacity, count))
@@ -47,13 +52,12 @@ def grown(pipeline: Pipeline, counters: Mapping[str, Mapping[str, Any]], found) 
 
 def capacities(pipeline: Pipeline) -> dict[str, dict[str, Any]]:
     """The capacity options in use, ``{pass name: {option: value}}`` (for reports)."""
-    return {p.name: {c.option: p.options[c.option] for c in p.technique.capacities}
-            for p in pipeline.passes if p.technique is not None and p.technique.capacities}
+    return {p.name: {c.option: p.options[c.option] for c in _used(p)} for p in pipeline.passes if _used(p)}
 
 
 def has_lossy_capacity(pipeline: Pipeline) -> bool:
     """Whether any pass of ``pipeline`` has a capacity that can drop items (so its counters must be read)."""
-    return any(c.lossy for p in pipeline.passes if p.technique is not None for c in p.technique.capacities)
+    return any(c.lossy for p in pipeline.passes for c in _used(p))
 
 
 def render_without_overflow(pipeline: Pipeline, render: Callable[[Pipeline], Any], *,

@@ -42,13 +42,14 @@ from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
 from gpupro.shading.light_bounds import box_meets_light
 from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, nearest_on_segment, spot_falloff
 from gpupro.shading.light_lists import flat_list_reads
-from gpupro.shading.light_loop import light_radiance, pad_lights, sum_over_lights
+from gpupro.shading.light_loop import GroupTest, light_radiance, pad_lights, sum_over_lights
 
 _TERMS_SCALAR = ("n_dot_v", "alpha", "visibility_v")
 _TERMS_VECTOR = ("n", "v", "f0", "diffuse")
 _LIGHTS_SCALAR = ("kind", "range", "cos_inner", "cos_outer", "length")
 _LIGHTS_VECTOR = ("position", "direction", "color")
 _PIXEL_ARRAYS = 3 + len(_TERMS_SCALAR) + 3 * len(_TERMS_VECTOR)
+_LIGHT_ARRAYS = len(_LIGHTS_SCALAR) + 3 * len(_LIGHTS_VECTOR)
 
 # Measured on an H200, 1920×1080 random surfaces, 1,024 lights (pixels per program, lights per step → ms):
 # (256, 1) 16.3, (64, 8) 16.8, (128, 1) 18.0, (128, 4) 19.4, (64, 4) 20.2, (256, 4) 22.5, (128, 8) 24.0.
@@ -143,48 +144,101 @@ def _surface_term(column: list, light: dict):
     return _radiance(*_surface_of(column), light)
 
 
-def _kernel(*refs, n_columns: int, n_steps: int, lights_per_step: int, term):
-    column_refs, light_refs, out_refs = refs[:n_columns], refs[n_columns:-3], refs[-3:]
+def _kernel(*refs, n_columns: int, n_group_arrays: int, n_outputs: int, n_lights: int, n_steps: int,
+            lights_per_step: int, blocks_per_group: int, term, passes_of):
+    column_refs = refs[:n_columns]
+    group_refs = refs[n_columns:n_columns + n_group_arrays]
+    light_refs, out_refs = refs[n_columns + n_group_arrays:-n_outputs], refs[-n_outputs:]
     column = [r[...][:, None] for r in column_refs]  # [B, 1]: broadcast against [1, lights_per_step]
-
-    def step(i, total):
-        light = _light_of([r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in light_refs])  # [1, L]
-        rgb = term(column, light)
-        return tuple(t + jnp.sum(c, axis=1) for t, c in zip(total, rgb))
-
     zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
-    total = jax.lax.fori_loop(0, n_steps, step, (zeros, zeros, zeros))
+
+    def lights_at(i, refs):  # [1, L] blocks of per-light arrays
+        return [r[pl.ds(i * lights_per_step, lights_per_step)][None, :] for r in refs]
+
+    def add(total, blocks):  # [B, L] blocks summed over their lights
+        return tuple(t + jnp.sum(b, axis=1) for t, b in zip(total, blocks))
+
+    if passes_of is None:
+        step = lambda i, total: add(total, term(column, _light_of(lights_at(i, light_refs))))
+    else:
+        # The group's test, set up once (e.g. the tile's depth range), then applied to each step's lights.
+        passes = passes_of([r[...] for r in group_refs], pl.program_id(0) // blocks_per_group)
+
+        def step(i, total):
+            index = i * lights_per_step + jax.lax.broadcasted_iota(jnp.int32, (1, lights_per_step), 1)
+            passed = passes(lights_at(i, light_refs[_LIGHT_ARRAYS:])) & (index < n_lights)  # [1, L]
+
+            def evaluate():  # the passing lights' terms only, as the XLA path's mask (at every point, sky too)
+                light = _light_of(lights_at(i, light_refs[:_LIGHT_ARRAYS]))
+                rgb = [jnp.where(passed, c, 0.0) for c in term(column, light)]
+                reached = _reaches(tuple(column[:3]), light) & passed
+                return add(total, rgb + [reached.astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)])
+
+            # One branch for the whole program: a step none of whose lights passes reads and tests only its
+            # bounds.
+            return jax.lax.cond(jnp.max(passed.astype(jnp.int32)) > 0, evaluate, lambda: total)
+
+    total = jax.lax.fori_loop(0, n_steps, step, (zeros,) * n_outputs)
     for ref, value in zip(out_refs, total):
         ref[...] = value
 
 
-def light_sums(columns: list, lights: Lights, term, *, block_pixels: int = BLOCK_PIXELS,
+def _power_of_two_at_least(n: int) -> int:
+    return 1 << max(n - 1, 0).bit_length()
+
+
+def light_sums(columns: list, lights: Lights, term, *, test: GroupTest | None = None, block_pixels: int = BLOCK_PIXELS,
                lights_per_step: int = LIGHTS_PER_STEP, interpret: bool = False):
     """Σ over all N ≥ 1 lights of ``term(column, light)`` at P points, as one kernel over blocks of points:
     each program keeps its points' columns and running sums in registers and walks the lights.
 
-    ``columns``: per-point float32 arrays [P] (positions and whatever the term reads, as components);
-    ``term``: a function of the columns' blocks [B, 1] and a light's component blocks [1, L] by name
-    (:func:`_light_of`; padding lights have zero colour) → (R, G, B) blocks [B, L]; ``block_pixels``,
+    ``columns``: per-point float32 arrays [P] (positions (three components) first, then whatever the term
+    reads); ``term``: a function of the columns' blocks [B, 1] and a light's component blocks [1, L] by
+    name (:func:`_light_of`; padding lights have zero colour) → (R, G, B) blocks [B, L]; ``block_pixels``,
     ``lights_per_step`` powers of two; ``interpret``: Pallas' interpreter (any backend). Returns [P, 3].
+
+    ``test``: None, or a :class:`gpupro.shading.light_loop.GroupTest` over G groups; the P points are then
+    G groups of P / G consecutive points, each program shades a block of one group (min(``block_pixels``,
+    the group padded to a power of two) points), sets the group's test up once from its group arrays,
+    and sums only the lights that pass it, skipping a step where none passes: single-kernel tiled shading,
+    which keeps no light list. Returns then ``(radiance [P, 3], reached [P], evaluated [P])`` float32:
+    the passing lights whose influence truly reaches each point, and the lights passing its group's test.
     Not differentiable by itself.
     """
     n_points = columns[0].shape[0]
-    padded = -(-n_points // block_pixels) * block_pixels
+    groups = 1 if test is None else test.groups
+    if n_points % groups:
+        raise ValueError(f"light_sums: {n_points} points do not make {groups} groups of equal size")
+    per_group = n_points // groups
+    block = block_pixels if test is None else min(block_pixels, _power_of_two_at_least(per_group))
+    blocks_per_group = -(-per_group // block)
+    padded = blocks_per_group * block
     n_steps = -(-lights.count // lights_per_step)
-    lights = pad_lights(lights, count=n_steps * lights_per_step - lights.count)
-    columns = [jnp.pad(jnp.asarray(c, jnp.float32), (0, padded - n_points)) for c in columns]
-    light_arrays = _light_arrays(lights)
-    pixel_spec = pl.BlockSpec((block_pixels,), lambda i: (i,))
+    extra = n_steps * lights_per_step - lights.count
+    columns = [jnp.pad(jnp.asarray(c, jnp.float32).reshape(groups, per_group), ((0, 0), (0, padded - per_group))).reshape(-1)
+               for c in columns]
+    light_arrays = _light_arrays(pad_lights(lights, count=extra))
+    group_arrays = []
+    if test is not None:
+        light_arrays += [jnp.pad(jnp.asarray(a, jnp.float32), (0, extra)) for a in test.light_arrays]
+        group_arrays = [jnp.asarray(a, jnp.float32).reshape(-1) for a in test.group_arrays]
+    n_outputs = 3 if test is None else 5
+    pixel_spec = pl.BlockSpec((block,), lambda i: (i,))
+    group_spec = lambda a: pl.BlockSpec((a.shape[0] // groups,), lambda i: (i // blocks_per_group,))
     out = pl.pallas_call(
-        functools.partial(_kernel, n_columns=len(columns), n_steps=n_steps, lights_per_step=lights_per_step, term=term),
-        out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32)] * 3,
-        grid=(padded // block_pixels,),
-        in_specs=[pixel_spec] * len(columns) + [pl.BlockSpec(a.shape, lambda i: (0,)) for a in light_arrays],
-        out_specs=[pixel_spec] * 3,
+        functools.partial(_kernel, n_columns=len(columns), n_group_arrays=len(group_arrays), n_outputs=n_outputs,
+                          n_lights=lights.count, n_steps=n_steps, lights_per_step=lights_per_step,
+                          blocks_per_group=blocks_per_group, term=term, passes_of=None if test is None else test.passes_of),
+        out_shape=[jax.ShapeDtypeStruct((groups * padded,), jnp.float32)] * n_outputs,
+        grid=(groups * blocks_per_group,),
+        in_specs=([pixel_spec] * len(columns) + [group_spec(a) for a in group_arrays]
+                  + [pl.BlockSpec(a.shape, lambda i: (0,)) for a in light_arrays]),
+        out_specs=[pixel_spec] * n_outputs,
         interpret=interpret,
-    )(*columns, *light_arrays)
-    return jnp.stack(out, axis=-1)[:n_points]
+    )(*columns, *group_arrays, *light_arrays)
+    out = [o.reshape(groups, padded)[:, :per_group].reshape(-1) for o in out]
+    radiance = jnp.stack(out[:3], axis=-1)
+    return radiance if test is None else (radiance, out[3], out[4])
 
 
 def _run_kernel(points, terms: dict, lights: Lights, *, block_pixels: int, lights_per_step: int, interpret: bool):
@@ -314,6 +368,21 @@ def light_list_sums(points, terms: dict, lights: Lights, lists, rows, *, block_p
     """
     return list_sums(_pixel_arrays(points, terms, points.shape[0]), lights, _surface_term, lists, rows,
                      block_pixels=block_pixels, count_reached=True, interpret=interpret)
+
+
+def culled_light_sums(points, terms: dict, lights: Lights, test: GroupTest, *, block_pixels: int = BLOCK_PIXELS,
+                      lights_per_step: int = LIGHTS_PER_STEP, interpret: bool = False):
+    """Σ over the lights passing each group's ``test`` of brdf · E⊥ · max(n·l, 0), as one kernel over blocks
+    of a group's points (:func:`light_sums` with a test): the fast form of
+    :func:`gpupro.shading.light_loop.accumulate_culled_lights` (GGX, no shadows).
+
+    ``points`` [P, 3], G groups of P / G consecutive points; ``terms`` the points' GGX
+    :func:`gpupro.shading.brdfs.view_terms` ([P, 3] and [P]); ``lights`` N ≥ 1 lights; ``test`` a
+    :class:`gpupro.shading.light_loop.GroupTest` over the G groups. Returns ``(radiance [P, 3] in W/(m² sr),
+    reached [P], evaluated [P])`` float32, as :func:`light_sums`. Not differentiable by itself.
+    """
+    return light_sums(_pixel_arrays(points, terms, points.shape[0]), lights, _surface_term, test=test,
+                      block_pixels=block_pixels, lights_per_step=lights_per_step, interpret=interpret)
 
 
 def block_light_lists(points, lights: Lights, *, block_pixels: int = BLOCK_PIXELS):

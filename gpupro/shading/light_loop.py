@@ -29,6 +29,7 @@ however many lights there are. The chunk body is rematerialised under reverse-mo
 from __future__ import annotations
 
 import functools
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -101,38 +102,44 @@ def _with_unshadowed_column(shadow, n_points: int):
     return jnp.concatenate([jnp.asarray(shadow, jnp.float32), jnp.ones((n_points, 1), jnp.float32)], axis=1)
 
 
-def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_chunk: int | None = None):
+def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_chunk: int | None = None,
+                    per_light=None, channels: int = 3):
     """Σ_i term(lights)[:, i] · s_i over N lights, as a scan over chunks of ``light_chunk`` lights: the
     loop of every all-lights sum (surface shading, in-scattering in media).
 
-    ``term``: a function of M lights → [P, M, 3] (called on chunks of them, padded with zero-colour
+    ``term``: a function of M lights → [P, M, C] (called on chunks of them, padded with zero-colour
     lights whose term must be 0: :func:`pad_lights`); ``lights``: N lights; ``n_points`` P;
     ``shadow``: None, or [P, K] visibility s_i in [0, 1] of the first K ≤ N lights (the others 1);
     ``light_chunk`` (static) lights per scan step (capped at N; None: :func:`default_light_chunk`),
-    the peak intermediate being [P, light_chunk, 3]. The chunk body is rematerialised under reverse
-    mode (``jax.checkpoint``). Returns [P, 3].
+    the peak intermediate being [P, light_chunk, C]; ``per_light``: None, or a pytree of arrays [N, ...]
+    cut into the same chunks (zeros for the padding lights) and passed to ``term`` as its second
+    argument; ``channels`` (static) C. The chunk body is rematerialised under reverse mode
+    (``jax.checkpoint``). Returns [P, C].
     """
     n_lights = lights.count
     if n_lights == 0:
-        return jnp.zeros((n_points, 3), jnp.float32)
+        return jnp.zeros((n_points, channels), jnp.float32)
     chunk = min(light_chunk or default_light_chunk(), n_lights)
     n_chunks = -(-n_lights // chunk)
     padded = pad_lights(lights, count=n_chunks * chunk - n_lights)
     chunked = jax.tree_util.tree_map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), padded)
+    if per_light is not None:
+        pad = lambda x: jnp.pad(x, [(0, n_chunks * chunk - n_lights)] + [(0, 0)] * (x.ndim - 1))
+        per_light = jax.tree_util.tree_map(lambda x: pad(x).reshape((n_chunks, chunk) + x.shape[1:]), per_light)
     if shadow is not None:
         shadow = _with_unshadowed_column(shadow, n_points)
         n_shadowed = shadow.shape[1] - 1
 
     @jax.checkpoint
     def step(total, xs):
-        chunk_lights, first = xs
-        values = term(chunk_lights)
+        chunk_lights, first, chunk_values = xs
+        values = term(chunk_lights) if per_light is None else term(chunk_lights, chunk_values)
         if shadow is not None:
             values = values * jnp.take(shadow, jnp.minimum(first + jnp.arange(chunk), n_shadowed), axis=1)[..., None]
         return total + jnp.sum(values, axis=1), None
 
     starts = jnp.arange(n_chunks, dtype=jnp.int32) * chunk
-    total, _ = jax.lax.scan(step, jnp.zeros((n_points, 3), jnp.float32), (chunked, starts))
+    total, _ = jax.lax.scan(step, jnp.zeros((n_points, channels), jnp.float32), (chunked, starts, per_light))
     return total
 
 
@@ -337,17 +344,22 @@ def _bucketed_light_lists(surface, lights: Lights, lists, rows, shadow, distribu
             reached.reshape((n_blocks * items, n_per_group))[unsort])
 
 
+def _kernel_surface(surface):
+    """``surface`` (points [G, Q, 3], normals, views, base colour [G, Q, 3], roughness, metallic [G, Q]) as
+    the kernels take it: ``(points [G · Q, 3], GGX view terms of the G · Q points)``."""
+    points, normals, views, base_color, roughness, metallic = surface
+    flat = lambda x: x.reshape((-1,) + x.shape[2:])
+    return flat(points), view_terms(flat(normals), flat(views), base_color=flat(base_color),
+                                    roughness=flat(roughness), metallic=flat(metallic))
+
+
 def _kernel_light_lists(surface, lights: Lights, lists, rows):
     """:func:`accumulate_light_lists` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
     shadows; interpreted off GPUs)."""
     from gpupro.shading.light_kernel import light_list_sums  # it builds on this module
 
-    points, normals, views, base_color, roughness, metallic = surface
-    n_groups, n_per_group = points.shape[:2]
-    flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
-    terms = view_terms(flat(normals), flat(views), base_color=flat(base_color), roughness=flat(roughness),
-                       metallic=flat(metallic))
-    radiance, reached = light_list_sums(flat(points), terms, lights, lists, jnp.repeat(rows, n_per_group),
+    n_groups, n_per_group = surface[0].shape[:2]
+    radiance, reached = light_list_sums(*_kernel_surface(surface), lights, lists, jnp.repeat(rows, n_per_group),
                                         interpret=jax.default_backend() != "gpu")
     return radiance.reshape(n_groups, n_per_group, 3), reached.reshape(n_groups, n_per_group)
 
@@ -378,6 +390,132 @@ def _light_lists_backward(distribution, chunk, light_loop, saved, cotangent):
 
 
 _light_lists.defvjp(_light_lists_forward, _light_lists_backward)
+
+
+class GroupTest(typing.NamedTuple):
+    """A conservative test of each of N lights against each of G groups of points (e.g. screen tiles),
+    written once on broadcastable arrays, so that the XLA loop (every group against every light at once,
+    [G, N]) and the kernel of :mod:`gpupro.shading.light_kernel` (one group against one step's lights)
+    make the same comparisons on the same values.
+
+    ``groups`` G; ``group_arrays``: float32 [G, S] values per group (S a power of two, as Triton's blocks
+    must be; the kernel reads a group's S values whole); ``light_arrays``: float32 [N] values per light;
+    ``passes_of(group_values, group)``: from the group arrays' values [..., S] and the group index (int32,
+    shaped as those values without their S axis, kept as size 1: [G, 1] here, a scalar in the kernel) a
+    function of the light arrays' values → bool, True where the light may reach a point of the group.
+    Reductions over S keep their axis (``keepdims``), so that [G, 1] meets [1, N] here and [1] meets a
+    kernel step's [1, L].
+    """
+
+    groups: int
+    group_arrays: list
+    light_arrays: list
+    passes_of: typing.Callable
+
+    def mask(self):
+        """bool [G, N]: which lights pass each group's test."""
+        passes = self.passes_of(list(self.group_arrays), jnp.arange(self.groups, dtype=jnp.int32)[:, None])
+        return passes([jnp.asarray(a)[None, :] for a in self.light_arrays])
+
+
+def accumulate_culled_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, test: GroupTest,
+                             *, shadow=None, distribution: str = "ggx", light_chunk: int | None = None,
+                             light_loop: str = "auto"):
+    """Σ over the lights that pass each group's ``test`` of brdf · E⊥ · max(n·l, 0) · s: the all-lights loop
+    culling per group as it goes, with no light list (single-kernel tiled shading), and the per-light
+    arithmetic of :func:`accumulate_lights`.
+
+    ``points`` [G, Q, 3] world positions in G groups of Q points; ``normals``, ``views``, ``base_color``
+    [G, Q, 3]; ``roughness``, ``metallic`` [G, Q]; ``lights``: N lights; ``test``: a :class:`GroupTest` over
+    the G groups; ``shadow``: None or [G, Q, K] visibility of the first K ≤ N lights; ``distribution``,
+    ``light_chunk`` (static) as in :func:`accumulate_lights`; ``light_loop`` (static) "scan" (the chunked
+    XLA scan over every light, each group's sums masked by ``test.mask()``), "kernel"
+    (:func:`gpupro.shading.light_kernel.culled_light_sums`, which tests a step's lights against the group
+    inside the kernel and skips a step none passes; GGX, no shadows; interpreted off GPUs) or "auto" (the
+    kernel on GPUs where it applies). Returns ``(radiance [G, Q, 3], reached [G, Q] float32, evaluated [G]
+    float32)``: ``reached`` counts the passing lights whose influence truly reaches each point
+    (:func:`light_reaches`), ``evaluated`` the lights passing each group's test. Differentiable (reverse
+    mode through the XLA scan; the test is not: it takes no gradient).
+    """
+    points = jnp.asarray(points, jnp.float32)
+    n_groups, n_per_group = points.shape[:2]
+    if lights.count == 0:
+        return (jnp.zeros((n_groups, n_per_group, 3), jnp.float32), jnp.zeros((n_groups, n_per_group), jnp.float32),
+                jnp.zeros((n_groups,), jnp.float32))
+    surface = tuple(jnp.asarray(x, jnp.float32) for x in (points, normals, views, base_color, roughness, metallic))
+    chunk = min(light_chunk or default_light_chunk(), lights.count)
+    if _surface_light_loop(light_loop, shadow, distribution, "accumulate_culled_lights") == "kernel":
+        return _kernel_culled(surface, lights, list(test.group_arrays), list(test.light_arrays), test.groups,
+                              test.passes_of, chunk)
+    mask = test.mask()
+    shadow = None if shadow is None else jnp.asarray(shadow, jnp.float32)
+    radiance = _masked_sums(surface, lights, mask, shadow, distribution, chunk)
+    return radiance, _masked_reached(surface[0], lights, mask, chunk), jnp.sum(mask, axis=1, dtype=jnp.float32)
+
+
+def _per_point(mask, n_per_group: int):
+    """[M, G] chunk of a group mask → [G · Q, M] for the group's Q points."""
+    return jnp.repeat(mask.T, n_per_group, axis=0)
+
+
+def _masked_sums(surface, lights: Lights, mask, shadow, distribution: str, chunk: int):
+    """The scan path of :func:`accumulate_culled_lights`: radiance [G, Q, 3], every light evaluated at every
+    point and kept where ``mask`` [G, N] passes it."""
+    n_groups, n_per_group = surface[0].shape[:2]
+    flat = lambda x: x.reshape((n_groups * n_per_group,) + x.shape[2:])
+    points, normals, views, base_color, roughness, metallic = (flat(x) for x in surface)
+    terms = surface_terms(normals, views, base_color, roughness, metallic, distribution=distribution)
+
+    def radiance(chunk_lights, chunk_mask):
+        values = light_radiance(points, terms, chunk_lights, distribution=distribution)
+        return jnp.where(_per_point(chunk_mask, n_per_group)[..., None], values, 0.0)
+
+    total = sum_over_lights(radiance, lights, points.shape[0], shadow=None if shadow is None else flat(shadow),
+                            light_chunk=chunk, per_light=mask.T)
+    return total.reshape(n_groups, n_per_group, 3)
+
+
+def _masked_reached(points, lights: Lights, mask, chunk: int):
+    """[G, Q] float32: at each of the points [G, Q, 3], the lights passed by its group's ``mask`` [G, N]
+    whose influence truly reaches it (:func:`light_reaches`)."""
+    n_groups, n_per_group = points.shape[:2]
+    flat = points.reshape(-1, 3)
+    reached = lambda chunk_lights, chunk_mask: (light_reaches(chunk_lights, flat)
+                                                & _per_point(chunk_mask, n_per_group))[..., None].astype(jnp.float32)
+    total = sum_over_lights(reached, jax.lax.stop_gradient(lights), flat.shape[0], light_chunk=chunk, per_light=mask.T,
+                            channels=1)
+    return total.reshape(n_groups, n_per_group)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4, 5, 6))
+def _kernel_culled(surface, lights: Lights, group_arrays, light_arrays, groups: int, passes_of, chunk: int):
+    """:func:`accumulate_culled_lights` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
+    shadows; interpreted off GPUs); reverse mode through the scan path."""
+    from gpupro.shading.light_kernel import culled_light_sums  # it builds on this module
+
+    n_groups, n_per_group = surface[0].shape[:2]
+    radiance, reached, evaluated = culled_light_sums(*_kernel_surface(surface), lights,
+                                                     GroupTest(groups, group_arrays, light_arrays, passes_of),
+                                                     interpret=jax.default_backend() != "gpu")
+    return (radiance.reshape(n_groups, n_per_group, 3), reached.reshape(n_groups, n_per_group),
+            evaluated.reshape(n_groups, n_per_group)[:, 0])
+
+
+def _kernel_culled_forward(surface, lights, group_arrays, light_arrays, groups, passes_of, chunk):
+    result = _kernel_culled(surface, lights, group_arrays, light_arrays, groups, passes_of, chunk)
+    return result, (surface, lights, group_arrays, light_arrays)
+
+
+def _kernel_culled_backward(groups, passes_of, chunk, saved, cotangent):
+    surface, lights, group_arrays, light_arrays = saved
+    mask = GroupTest(groups, group_arrays, light_arrays, passes_of).mask()
+    _, pullback = jax.vjp(lambda s, l: _masked_sums(s, l, mask, None, "ggx", chunk), surface, lights)
+    d_surface, d_lights = pullback(cotangent[0])
+    zeros = lambda arrays: [jnp.zeros_like(a) for a in arrays]  # the test takes no gradient
+    return d_surface, d_lights, zeros(group_arrays), zeros(light_arrays)
+
+
+_kernel_culled.defvjp(_kernel_culled_forward, _kernel_culled_backward)
 
 
 LIGHT_LOOPS = ("auto", "scan", "kernel")

@@ -1,4 +1,5 @@
-"""Tiled deferred and tiled forward shading: per-tile light lists from screen-space light bounds.
+"""Tiled deferred and tiled forward shading: per-tile light lists from screen-space light bounds, in
+the multi-kernel and the single-kernel form.
 
 Source: Olsson's thesis (seed), Paper I, "Tiled Shading" (Olsson & Assarsson, JGT 15(4), 2011): the
 tiled deferred algorithm, steps 2–5, its data structure (Fig. 1), the depth-range optimisation and the
@@ -22,8 +23,9 @@ Light bounds (view space, the camera looking down −z; view depth d = −z):
 - directional light: every tile.
 Screen bound of a sphere (centre d_c deep): the pixel rectangle of the projected 8 corners of its
 view-space bounding cube, which holds the projection of the sphere because projection maps the convex
-cube onto the hull of its corners' images. A perspective sphere with d_c − R < near (holding the eye
-or crossing the near plane) covers the whole screen; one with d_c + R ≤ 0 (behind the eye) no tile.
+cube onto the hull of its corners' images. In perspective the cube is first cut at the near plane (no
+sample lies nearer), so a sphere holding the eye or crossing the near plane gets the rectangle of its
+part beyond it; one with d_c + R < near (wholly nearer, e.g. behind the eye) no tile.
 Depth bounds (option ``depth_bounds``): per tile [z_min, z_max] of the view depth of its covered
 pixels; a light is kept only where [d_c − R, d_c + R] overlaps it (tiles without samples keep none).
 Lists (``list_layout``; :mod:`gpupro.shading.light_lists`), count → scan → fill:
@@ -38,17 +40,54 @@ Lists (``list_layout``; :mod:`gpupro.shading.light_lists`), count → scan → f
   lights (those past entry M, counted in ``list_memory_overflow``; the entry points grow M to
   ``list_memory_needed``). Memory 4 · (M + 2T) bytes. XLA needs static shapes, so M is a fixed capacity
   where the paper sizes its index list on the CPU each frame.
+Both layouts are the multi-kernel form (option ``kernel`` = "multi", Paper I secs. 2 and 6: depth range, grid
+and shading as separate steps; the form Olsson reports).
+
+Single kernel (``kernel`` = "single"; Paper I sec. 7, after Andersson 09 and Lauritzen 10, which
+Olsson ported to CUDA and found "very close" to the multi-kernel form). One thread group per tile, one
+thread per fragment: the group reduces its tile's [z_min, z_max], tests every light against the tile,
+builds the tile's list in on-chip memory and shades from it, so no list reaches global memory. Here:
+1. per light, once (O(N), tile-independent, as the lights' view-space transform): the screen rectangle
+   and depth extent of :func:`screen_bounds` (six floats);
+2. on GPUs (GGX, no shadows), one Pallas kernel (:func:`gpupro.shading.light_kernel.culled_light_sums`)
+   with a program per tile (per block of 256 pixels of one tile for t > 16: each program reduces the
+   whole tile's depth range, t² values, and shades its block): it reduces [z_min, z_max]
+   (:func:`covered_depth_range`), walks every light ``LIGHTS_PER_STEP`` at a time, tests them against
+   the tile with the multi kernel's test written once on components (:func:`bound_meets_tile`:
+   rectangle against the tile's pixel square, depth extent against its depth range), skips a step
+   none passes (one uniform branch per program) and adds the surface terms of those that pass to
+   per-pixel sums held in registers;
+3. elsewhere (CPU, shadows, Beckmann) and for gradients, the chunked XLA scan over every light
+   (:func:`gpupro.shading.light_loop.accumulate_culled_lights`), each tile's sums masked by the same
+   test, evaluated for all tiles and lights at once ([T, N] booleans, no list and no capacity).
+The lights passing a tile are exactly the multi kernel's list, so the image and the counters
+``lighting_computations`` and ``exact_lighting_computations`` are the same. Departures: the test is
+the multi kernel's screen rectangle and depth range, not six frustum planes against the light's
+sphere; and the list is never materialised, not even in shared memory: the program applies each
+light where it passes instead of appending it to a list, so the form needs no shared-memory atomics
+and no group barrier (Triton exposes neither), and with nothing stored it has no capacity that can
+overflow (``tile_capacity`` is unused; ``tile_list_overflow`` is 0). The cost is that the tile walks
+all N lights while it shades, where the paper's group tests them in parallel first (N / t² lights per
+thread) and then loops over its short list; Olsson's remark that tiles in a row or column share
+planes, and that a tile between two tiles a light affects is affected too, is not exploited (nor by
+the multi kernel). The form is an option of this technique rather than of ``tiled_culling`` (GPU Pro
+6 VI.1, the same family, whose tiled deferred also culls and shades per tile) because it is Paper I's
+variant of this very algorithm: the same bounds, the same per-tile lights and counters, so the two forms
+compare the structure alone (lists in global memory or none), as Olsson compared them.
 
 Counters: ``lighting_computations`` Σ_covered |list|; ``exact_lighting_computations`` Σ_covered of the
 listed lights whose influence truly reaches the pixel (distance to the light's position, or to a
 capsule's segment, < range, and inside the outer cone for spots; with no overflow, every such light
 is listed, the bounds being conservative);
-``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated); ``light_list_bytes`` the
-memory of the lists in their layout; ``list_memory_needed`` Σ_t n_t in either layout.
+``false_positive_rate`` = 1 − exact / lighting (0 when nothing is evaluated); ``light_tile_tests``
+T · N, the (tile, light) pairs tested (both forms); ``light_list_bytes`` the memory of the lists in
+their layout, 0 for the single kernel, whose lists stay on chip (here: are never stored);
+``list_memory_needed`` Σ_t n_t in either layout.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from gpupro.numerics import einsum
@@ -56,7 +95,9 @@ from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import light_spheres
 from gpupro.shading.light_lists import LIST_LAYOUTS, kept_lengths, list_storage, pack_light_lists
-from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
+from gpupro.shading.light_loop import (
+    GroupTest, accumulate_light_lists, accumulate_culled_lights, compose_radiance, view_directions,
+)
 from gpupro.technique import BOOLEAN, Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import (
     DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW,
@@ -107,13 +148,40 @@ def screen_bounds(centre, radius, camera: Camera, *, from_eye: bool = False):
     return rect, jnp.stack([depth - radius, depth + radius], axis=1)
 
 
+def covered_depth_range(depth, covered):
+    """``(z_min, z_max)``: the extremes of ``depth`` where ``covered`` (bool), over the last axis, kept with
+    size 1 (+inf, −inf where nothing is covered). Min and max are exact, so the XLA path ([T, t²] → [T, 1])
+    and a kernel's block ([S] → [1]) get the same bits."""
+    return (jnp.min(jnp.where(covered, depth, jnp.inf), axis=-1, keepdims=True),
+            jnp.max(jnp.where(covered, depth, -jnp.inf), axis=-1, keepdims=True))
+
+
 def tile_depth_bounds(view_depth, coverage, *, tile: int):
     """Per-tile [z_min, z_max] of the view depth of covered pixels: [T, 2] (world units; +inf, −inf
     for a tile without covered pixels). ``view_depth``, ``coverage`` [H, W]; ``tile`` (static) pixels."""
     covered = to_tiles(jnp.asarray(coverage) > 0, tile=tile)
     depth = to_tiles(jnp.asarray(view_depth, jnp.float32), tile=tile)
-    return jnp.stack([jnp.min(jnp.where(covered, depth, jnp.inf), axis=1),
-                      jnp.max(jnp.where(covered, depth, -jnp.inf), axis=1)], axis=1)
+    return jnp.concatenate(covered_depth_range(depth, covered), axis=1)
+
+
+def tile_origins(tile_index, *, tiles_x: int, tile: int):
+    """Top-left pixel corners ``(x0, y0)`` (float32, x right, y down) of the row-major tiles ``tile_index``
+    (int32, any shape) of a grid ``tiles_x`` tiles wide; ``tile`` (static) pixels."""
+    return (tile_index % tiles_x).astype(jnp.float32) * tile, (tile_index // tiles_x).astype(jnp.float32) * tile
+
+
+def bound_meets_tile(rect, light_depth, origin, depth_range, *, tile: int):
+    """Whether light bounds overlap tiles, on broadcastable components (the XLA form [T, N] and the
+    kernel's [1, L] blocks make the same comparisons). ``rect`` (x_min, x_max, y_min, y_max) and
+    ``light_depth`` (near, far) from :func:`screen_bounds`; ``origin`` (x0, y0) from :func:`tile_origins`;
+    ``depth_range``: None, or the tiles' (z_min, z_max) (:func:`covered_depth_range`); ``tile`` (static)
+    pixels. Closed intervals, so a bound that ends exactly on a tile edge keeps both tiles (conservative).
+    """
+    x0, y0 = origin
+    overlap = (rect[0] <= x0 + tile) & (rect[1] >= x0) & (rect[2] <= y0 + tile) & (rect[3] >= y0)
+    if depth_range is not None:
+        overlap = overlap & (light_depth[0] <= depth_range[1]) & (light_depth[1] >= depth_range[0])
+    return overlap
 
 
 def tile_overlaps(rect, light_depth, tile_depths, *, tiles_yx: tuple[int, int], tile: int):
@@ -121,18 +189,14 @@ def tile_overlaps(rect, light_depth, tile_depths, *, tiles_yx: tuple[int, int], 
 
     ``rect`` [N, 4] pixel rectangles and ``light_depth`` [N, 2] view-depth extents from
     :func:`screen_bounds`; ``tile_depths``: None, or [T, 2] per-tile depth ranges; ``tiles_yx``
-    (static) the tile grid (T_y, T_x); ``tile`` (static) pixels. Closed intervals, so a bound that ends
-    exactly on a tile edge keeps both tiles (conservative).
+    (static) the tile grid (T_y, T_x); ``tile`` (static) pixels (:func:`bound_meets_tile`).
     """
     rows, cols = tiles_yx
-    x0 = jnp.arange(cols, dtype=jnp.float32) * tile
-    y0 = jnp.arange(rows, dtype=jnp.float32) * tile
-    in_x = (rect[None, :, 0] <= x0[:, None] + tile) & (rect[None, :, 1] >= x0[:, None])  # [T_x, N]
-    in_y = (rect[None, :, 2] <= y0[:, None] + tile) & (rect[None, :, 3] >= y0[:, None])  # [T_y, N]
-    overlap = (in_y[:, None, :] & in_x[None, :, :]).reshape(rows * cols, -1)
-    if tile_depths is not None:
-        overlap = overlap & (light_depth[None, :, 0] <= tile_depths[:, 1:]) & (light_depth[None, :, 1] >= tile_depths[:, :1])
-    return overlap
+    index = jnp.arange(rows * cols, dtype=jnp.int32)[:, None]
+    per_light = lambda bounds: None if bounds is None else list(jnp.asarray(bounds).T[:, None, :])  # [1, N] each
+    depth_range = None if tile_depths is None else (tile_depths[:, :1], tile_depths[:, 1:])
+    return bound_meets_tile(per_light(rect), per_light(light_depth), tile_origins(index, tiles_x=cols, tile=tile),
+                            depth_range, tile=tile)
 
 
 def fill_light_lists(overlap, capacity: int):
@@ -193,6 +257,23 @@ def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, tile: i
     return fill_lists(overlap, list_layout=list_layout, capacity=tile_capacity, list_memory_capacity=list_memory_capacity)
 
 
+def _shade_tiles(surface: dict, camera: Camera, light_loop, *, ambient, background, shadow, tile: int):
+    """The G-buffer ``surface`` cut into tiles and shaded: ``light_loop(points, normals, views, base_color,
+    roughness, metallic, shadow=...)`` (each [T, t², ...], shadow None or [T, t², K]) → ``(direct [T, t², 3],
+    *rest)``; returns ``(hdr [H, W, 3], *rest)``."""
+    shape = jnp.shape(surface["coverage"])
+    tiled = {key: to_tiles(jnp.asarray(surface[key], jnp.float32), tile=tile)
+             for key in ("position", "normal", "base_color", "roughness", "metallic")}
+    points = tiled["position"]
+    views = view_directions(points.reshape(-1, 3), camera.eye).reshape(points.shape)
+    direct, *rest = light_loop(
+        points, tiled["normal"], views, tiled["base_color"], tiled["roughness"], tiled["metallic"],
+        shadow=None if shadow is None else to_tiles(jnp.asarray(shadow, jnp.float32), tile=tile))
+    hdr = compose_radiance(surface["coverage"], from_tiles(direct, shape, tile=tile), surface["emission"],
+                           surface["base_color"], surface["metallic"], ambient=ambient, background=background)
+    return (hdr, *rest)
+
+
 def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                       distribution: str, light_chunk: int | None, tile: int, list_of_group=None):
     """Shades every pixel with the lights of its tile's list: the light loop of tiled shading.
@@ -206,18 +287,24 @@ def shade_light_lists(surface: dict, lists, lights: Lights, camera: Camera, *, a
     reads (see :func:`gpupro.shading.light_loop.accumulate_light_lists`). Returns ``(hdr float32 [H, W, 3], reached float32 [T, t²])``: ``reached`` counts the listed lights
     whose influence truly reaches each pixel.
     """
-    shape = jnp.shape(surface["coverage"])
-    tiled = {key: to_tiles(jnp.asarray(surface[key], jnp.float32), tile=tile)
-             for key in ("position", "normal", "base_color", "roughness", "metallic")}
-    points = tiled["position"]
-    views = view_directions(points.reshape(-1, 3), camera.eye).reshape(points.shape)
-    direct, reached = accumulate_light_lists(
-        points, tiled["normal"], views, tiled["base_color"], tiled["roughness"], tiled["metallic"], lights, lists,
-        list_of_group=list_of_group, shadow=None if shadow is None else to_tiles(jnp.asarray(shadow, jnp.float32), tile=tile),
-        distribution=distribution, light_chunk=light_chunk)
-    hdr = compose_radiance(surface["coverage"], from_tiles(direct, shape, tile=tile), surface["emission"],
-                           surface["base_color"], surface["metallic"], ambient=ambient, background=background)
-    return hdr, reached
+    loop = lambda *tiled, shadow: accumulate_light_lists(*tiled, lights, lists, list_of_group=list_of_group,
+                                                         shadow=shadow, distribution=distribution, light_chunk=light_chunk)
+    return _shade_tiles(surface, camera, loop, ambient=ambient, background=background, shadow=shadow, tile=tile)
+
+
+def work_counters(coverage, evaluated, reached, *, tile: int) -> dict:
+    """``lighting_computations``, ``exact_lighting_computations`` and ``false_positive_rate`` (module
+    docstring) from ``coverage`` [H, W], ``evaluated`` [T] the lights each tile's pixels evaluate and
+    ``reached`` [T, t²] those of them reaching each pixel; ``tile`` (static) pixels."""
+    covered = to_tiles(jnp.asarray(coverage) > 0, tile=tile)
+    pixels = jnp.sum(covered, axis=1, dtype=jnp.int32).astype(jnp.float32)
+    lighting = jnp.sum(pixels * jnp.asarray(evaluated, jnp.float32))
+    exact = jnp.sum(jnp.where(covered, reached, 0.0))
+    return {
+        "lighting_computations": lighting,
+        "exact_lighting_computations": exact,
+        "false_positive_rate": jnp.where(lighting > 0, 1.0 - exact / jnp.maximum(lighting, 1.0), 0.0),
+    }
 
 
 def list_counters(coverage, lists, counts, evaluated, reached, lights: Lights, *, tile: int) -> dict:
@@ -227,17 +314,11 @@ def list_counters(coverage, lists, counts, evaluated, reached, lights: Lights, *
     ``evaluated`` [T] lights each tile's pixels evaluate; ``reached`` [T, t²] from
     :func:`shade_light_lists`; ``lights`` N lights; ``tile`` (static) pixels.
     """
-    covered = to_tiles(jnp.asarray(coverage) > 0, tile=tile)
-    pixels = jnp.sum(covered, axis=1, dtype=jnp.int32).astype(jnp.float32)
-    lighting = jnp.sum(pixels * jnp.asarray(evaluated, jnp.float32))
-    exact = jnp.sum(jnp.where(covered, reached, 0.0))
     storage = list_storage(lists, counts)
     return {
-        "lighting_computations": lighting,
-        "exact_lighting_computations": exact,
-        "false_positive_rate": jnp.where(lighting > 0, 1.0 - exact / jnp.maximum(lighting, 1.0), 0.0),
+        **work_counters(coverage, evaluated, reached, tile=tile),
         "light_list_bytes": storage["light_list_bytes"],
-        "tiles": jnp.int32(covered.shape[0]),
+        "tiles": jnp.int32(counts.shape[0]),
         "tile_list_overflow": storage["group_overflow"],
         "max_lights_per_tile": jnp.max(counts, initial=0),
         "lights": jnp.int32(lights.count),
@@ -247,7 +328,8 @@ def list_counters(coverage, lists, counts, evaluated, reached, lights: Lights, *
 def shade_tiled(surface: dict, view_depth, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                 distribution: str, light_chunk: int | None, tile: int, tile_capacity: int, depth_bounds: bool,
                 list_layout: str = "padded", list_memory_capacity: int = 0):
-    """Tiled shading of per-pixel surfaces: cull into per-tile lists, shade each pixel with its tile's.
+    """Tiled shading of per-pixel surfaces (the multi-kernel form): cull into per-tile lists, shade each
+    pixel with its tile's.
 
     ``surface``: dict with the G-buffer entries of
     :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS` ([H, W] or [H, W, 3], as in
@@ -264,7 +346,8 @@ def shade_tiled(surface: dict, view_depth, lights: Lights, camera: Camera, *, am
     hdr, reached = shade_light_lists(surface, lists, lights, camera, ambient=ambient, background=background,
                                      shadow=shadow, distribution=distribution, light_chunk=light_chunk, tile=tile)
     counters = list_counters(surface["coverage"], lists, counts, kept_lengths(lists, counts), reached, lights, tile=tile)
-    return hdr, {**counters, **list_memory_counters(lists, counts)}
+    return hdr, {**counters, **list_memory_counters(lists, counts),
+                 "light_tile_tests": jnp.float32(counts.shape[0] * lights.count)}
 
 
 def list_memory_counters(lists, counts) -> dict:
@@ -273,20 +356,79 @@ def list_memory_counters(lists, counts) -> dict:
     return {name: storage[name] for name in ("list_memory_overflow", "list_memory_needed")}
 
 
+def tile_test(lights: Lights, camera: Camera, view_depth, coverage, *, tile: int, depth_bounds: bool) -> GroupTest:
+    """The multi-kernel's per-tile test (:func:`tile_overlaps`: the light's screen rectangle, and its depth
+    extent against the tile's [z_min, z_max] with ``depth_bounds``) as a
+    :class:`gpupro.shading.light_loop.GroupTest` over the row-major tiles, for a light loop that culls as
+    it shades (the single kernel). Group arrays (with ``depth_bounds``): each tile's view depths and
+    coverage, t² padded with zeros (uncovered) to a power of two; light arrays: the 4 rectangle bounds
+    and 2 depth bounds of :func:`screen_bounds` (computed once per light, as the lights' view-space
+    transform; no gradient flows through the test). ``view_depth``, ``coverage`` [H, W]; ``tile``,
+    ``depth_bounds`` static.
+    """
+    rows, cols = tile_grid(jnp.shape(coverage), tile=tile)
+    rect, light_depth = screen_bounds(*light_spheres(jax.lax.stop_gradient(lights)), camera)
+    group_arrays = []
+    if depth_bounds:
+        side = 1 << (tile * tile - 1).bit_length()
+        per_tile = lambda x: jnp.pad(to_tiles(jnp.asarray(x, jnp.float32), tile=tile), ((0, 0), (0, side - tile * tile)))
+        group_arrays = [per_tile(view_depth), per_tile(jnp.asarray(coverage) > 0)]
+
+    def passes_of(values, index):
+        depth_range = covered_depth_range(values[0], values[1] > 0) if depth_bounds else None
+        origin = tile_origins(index, tiles_x=cols, tile=tile)
+        return lambda bounds: bound_meets_tile(bounds[:4], bounds[4:], origin, depth_range, tile=tile)
+
+    return GroupTest(rows * cols, group_arrays, [*rect.T, *light_depth.T], passes_of)
+
+
+def shade_tiled_single(surface: dict, view_depth, lights: Lights, camera: Camera, *, ambient, background,
+                       shadow=None, distribution: str, light_chunk: int | None, tile: int, depth_bounds: bool):
+    """Single-kernel tiled shading of per-pixel surfaces (module docstring, "Single kernel"): each tile
+    tests every light and shades with those that pass, keeping no list.
+
+    Arguments as :func:`shade_tiled` (no ``tile_capacity``: nothing can overflow; ``light_chunk`` the
+    lights per step of the XLA scan). On GPUs (GGX, no shadows) one Pallas kernel does it all
+    (:func:`gpupro.shading.light_kernel.culled_light_sums`); elsewhere, and for gradients, the chunked
+    XLA scan over all lights masked per tile. Returns ``(hdr float32 [H, W, 3], counters)``.
+    """
+    test = tile_test(lights, camera, view_depth, surface["coverage"], tile=tile, depth_bounds=depth_bounds)
+    loop = lambda *tiled, shadow: accumulate_culled_lights(*tiled, lights, test, shadow=shadow,
+                                                           distribution=distribution, light_chunk=light_chunk)
+    hdr, reached, evaluated = _shade_tiles(surface, camera, loop, ambient=ambient, background=background,
+                                           shadow=shadow, tile=tile)
+    counters = {
+        **work_counters(surface["coverage"], evaluated, reached, tile=tile),
+        "light_list_bytes": jnp.int32(0),
+        "tiles": jnp.int32(test.groups),
+        "tile_list_overflow": jnp.int32(0),
+        "max_lights_per_tile": jnp.max(evaluated, initial=0).astype(jnp.int32),
+        "lights": jnp.int32(lights.count),
+        "light_tile_tests": jnp.float32(test.groups * lights.count),
+        "list_memory_overflow": jnp.int32(0),
+        "list_memory_needed": jnp.sum(evaluated).astype(jnp.int32),
+    }
+    return hdr, counters
+
+
 def view_depth_of(position, camera: Camera):
     """Distance along the viewing axis [H, W] (world units) of world positions [H, W, 3]."""
     view = camera.view_matrix()
     return -(einsum("j,hwj->hw", view[2, :3], jnp.asarray(position, jnp.float32)) + view[2, 3])
 
 
-def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds, list_layout,
-                   list_memory_capacity):
+def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds, kernel,
+                   list_layout, list_memory_capacity):
     """Tiled deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
-    hdr, counters = shade_tiled({key: inputs[key] for key in DEFERRED_INPUTS}, inputs["view_depth"], scene.lights,
-                                scene.camera, ambient=params["ambient"], background=params["background"],
-                                shadow=inputs.get("shadow"), distribution=distribution, light_chunk=light_chunk,
-                                tile=tile, tile_capacity=tile_capacity, depth_bounds=depth_bounds,
-                                list_layout=list_layout, list_memory_capacity=list_memory_capacity)
+    shading = dict(ambient=params["ambient"], background=params["background"], shadow=inputs.get("shadow"),
+                   distribution=distribution, light_chunk=light_chunk, tile=tile, depth_bounds=depth_bounds)
+    surface = {key: inputs[key] for key in DEFERRED_INPUTS}
+    if kernel == "single":
+        hdr, counters = shade_tiled_single(surface, inputs["view_depth"], scene.lights, scene.camera, **shading)
+    else:
+        hdr, counters = shade_tiled(surface, inputs["view_depth"], scene.lights, scene.camera,
+                                    tile_capacity=tile_capacity, list_layout=list_layout,
+                                    list_memory_capacity=list_memory_capacity, **shading)
     return {"hdr": hdr}, counters
 
 
@@ -309,10 +451,17 @@ LIST_MEMORY_COUNTERS = (
 )
 """The packed layout's option, capacity and counters, shared by tiled and clustered shading."""
 
+KERNELS = ("multi", "single")
+"""Forms of tiled deferred shading (option ``kernel``; module docstring)."""
+
 TILED_OPTIONS = SHADING_OPTIONS + (
     Option("tile", 32, integer(1), "tile side in pixels (8, 16, 32, …)"),
-    Option("tile_capacity", 64, integer(1), "light slots per tile list of the padded layout (grown by the entry points on overflow)"),
+    Option("tile_capacity", 64, integer(1), "light slots per tile list of the padded layout (grown by the entry "
+                                            "points on overflow; the multi kernel only)"),
     Option("depth_bounds", True, BOOLEAN, "cull lights outside each tile's [min, max] view depth"),
+    Option("kernel", "multi", one_of(*KERNELS), "multi: per-tile lists for every tile, then shading (Paper I sec. 6); "
+                                                "single: each tile tests every light and shades with those that pass, "
+                                                "keeping no list (sec. 7)"),
 )
 TILED_CAPACITIES = (
     Capacity("tile_capacity", "tile_list_overflow", "lights listed per tile; the excess is dropped",
@@ -326,10 +475,22 @@ TILED_COUNTERS = SHADING_COUNTERS[:1] + (
     Counter("tile_list_overflow", "lights dropped from full tile lists"),
     Counter("max_lights_per_tile", "the longest tile list before truncation"),
 ) + SHADING_COUNTERS[1:]
-TILED_NOTES = ("Missing from Paper I: the single-kernel variant with per-tile frustum planes, "
-               "transparency (far-Z-only culling in a forward pass over blended geometry) and MSAA; screen "
-               "bounds are the projected corners of each sphere's bounding cube, not the tight tangent-plane "
-               "bound of Lengyel / Sigg et al.")
+LIGHT_TILE_TESTS = Counter("light_tile_tests", "lights × tiles tested (float32)")
+_SINGLE_KERNEL_DOCS = {
+    "light_list_bytes": "; 0 with the single kernel (no list leaves the chip)",
+    "tile_list_overflow": "; 0 with the single kernel (no list, no capacity)",
+    "max_lights_per_tile": "; with the single kernel the most lights passing one tile's test",
+}
+_TILED_COUNTERS = tuple(c._replace(doc=c.doc + _SINGLE_KERNEL_DOCS.get(c.name, "")) for c in TILED_COUNTERS) + (
+    LIGHT_TILE_TESTS,)
+_TILED_CAPACITIES = tuple(c._replace(when=c.when + (("kernel", "multi"),))
+                          for c in TILED_CAPACITIES + (LIST_MEMORY_CAPACITY,))
+"""The list capacities exist in the multi-kernel form only."""
+TILED_NOTES = ("Missing from Paper I: transparency (far-Z-only culling in a forward pass over blended "
+               "geometry) and MSAA; screen bounds are the projected corners of each sphere's bounding cube, not the "
+               "tight tangent-plane bound of Lengyel / Sigg et al. The single-kernel variant (sec. 7, kernel = "
+               "\"single\") tests the multi kernel's screen rectangles and depth ranges rather than six frustum "
+               "planes, and needs no shared-memory atomics: no list is built.")
 TILED_EXAMPLE = {"tile": 8}
 
 register(Technique(
@@ -343,8 +504,8 @@ register(Technique(
     outputs=(HDR,),
     options=TILED_OPTIONS + LIST_LAYOUT_OPTIONS,
     params=SHADING_PARAMS,
-    capacities=TILED_CAPACITIES + (LIST_MEMORY_CAPACITY,),
-    counters=TILED_COUNTERS + LIST_MEMORY_COUNTERS,
+    capacities=_TILED_CAPACITIES,
+    counters=_TILED_COUNTERS + LIST_MEMORY_COUNTERS,
     reference="deferred",
     example_options=TILED_EXAMPLE,
     notes=TILED_NOTES,
@@ -361,8 +522,8 @@ register(Technique(
     outputs=(HDR,),
     options=TILED_OPTIONS + LIST_LAYOUT_OPTIONS,
     params=SHADING_PARAMS,
-    capacities=TILED_CAPACITIES + (LIST_MEMORY_CAPACITY,),
-    counters=TILED_COUNTERS + LIST_MEMORY_COUNTERS,
+    capacities=_TILED_CAPACITIES,
+    counters=_TILED_COUNTERS + LIST_MEMORY_COUNTERS,
     reference="deferred",
     example_options=TILED_EXAMPLE,
     notes=TILED_NOTES + " Tiled forward here shades opaque fragments only, with depth bounds from their view depth "

@@ -88,7 +88,8 @@ from gpupro.technique import Check, Counter, Option, Technique, integer, one_of,
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
 from gpupro.techniques.lights.tiled import (
-    TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles, shade_light_lists, tile_grid, to_tiles,
+    LIGHT_TILE_TESTS, TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles, shade_light_lists, tile_grid,
+    to_tiles,
 )
 from gpupro.techniques.raster.gbuffer import SURFACE
 from gpupro.techniques.raster.raster import FRAGMENTS
@@ -414,13 +415,14 @@ OPTIONS = SHADING_OPTIONS + (
 )
 COUNTERS = TILED_COUNTERS + (
     Counter("tiles_culled_against", "tiles the culler runs on (every tile, sky too)"),
-    Counter("light_tile_tests", "lights × tiles tested (float32)"),
+    LIGHT_TILE_TESTS,
     Counter("light_volume_tests", "lights × tile volumes tested: 1 per tile, or 3 with a depth partition (float32)"),
     Counter("near_list_lights", "Σ over tiles of the first (near, or only) partition's list length"),
     Counter("far_list_lights", "Σ over tiles of the far partition's list length (0 without a partition)"),
 )
 NOTES = ("Missing from GPU Pro 6 VI.1: the single-kernel tiled deferred that shades from shared memory (here "
-         "culling and shading are two steps of one jitted frame), the atomics (count → scan → fill gives the "
+         "culling and shading are two steps of one jitted frame; tiled_deferred's kernel = \"single\" is that "
+         "form with Paper I's screen-rectangle test instead of the chapter's planes), the atomics (count → scan → fill gives the "
          "same lists, in ascending order), transparency and MSAA, and the benchmark timings (see the issue's "
          "GPU benchmark). Departures: spots are also culled as cones, capsules as capsules; with a depth partition each partition's "
          "list is also tested against the whole tile; tile corners use the true pixel-to-NDC mapping of the "
