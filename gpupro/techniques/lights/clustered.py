@@ -200,17 +200,20 @@ def last_slice(cells_per_slice: int) -> int:
     return (2**31 - 2) // cells_per_slice - 1
 
 
-def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int):
+def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int, layers: int = 1):
     """Packed int32 keys [H, W] (module docstring, step 1) of covered samples, :data:`NO_KEY` elsewhere.
     ``view_position``, ``view_normal`` [H, W, 3] view space; ``coverage`` [H, W]; static ``tile`` pixels,
-    ``normal_bins`` X (0: position only). Returns ``(keys, last)``: ``last`` the largest slice (Python int)."""
+    ``normal_bins`` X (0: position only), ``layers`` L: the images hold L layers of H / L rows each stacked
+    along the rows (translucent layers), each keyed as an image of its own. Returns ``(keys, last)``:
+    ``last`` the largest slice (Python int)."""
     height, width = jnp.shape(coverage)
+    height //= layers
     tiles_y, tiles_x = tile_grid((height, width), tile=tile)
     n_bins = 6 * normal_bins * normal_bins if normal_bins else 1
     last = last_slice(tiles_y * tiles_x * n_bins)
     k = depth_slices(-view_position[..., 2], camera, tiles_y=tiles_y, last=last)
     bins = normal_bins_of(view_normal, bins=normal_bins) if normal_bins else 0
-    rows = jnp.arange(height, dtype=jnp.int32)[:, None] // tile
+    rows = jnp.arange(height * layers, dtype=jnp.int32)[:, None] % height // tile
     cols = jnp.arange(width, dtype=jnp.int32)[None, :] // tile
     keys = ((k * n_bins + bins) * tiles_y + rows) * tiles_x + cols
     return jnp.where(jnp.asarray(coverage) > 0, keys, NO_KEY), last
@@ -285,12 +288,14 @@ def explicit_cones(view_normal, pixel_cluster, *, capacity: int):
 
 
 def build_clusters(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int,
-                   bounds: str, normal_cones: str, cluster_capacity: int):
+                   bounds: str, normal_cones: str, cluster_capacity: int, layers: int = 1):
     """Steps 1–3: keys, occupied clusters and their bounds. ``view_position``, ``view_normal`` [H, W, 3]
-    (view space), ``coverage`` [H, W]; static options as in the specification. Returns ``(clusters,
-    pixel_cluster int32 [H·W])`` (:class:`Clusters`)."""
-    shape = jnp.shape(coverage)
-    keys, last = cluster_keys(view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins)
+    (view space), ``coverage`` [H, W]; static options as in the specification, ``layers`` as in
+    :func:`cluster_keys`. Returns ``(clusters, pixel_cluster int32 [H·W])`` (:class:`Clusters`)."""
+    height, width = jnp.shape(coverage)
+    shape = (height // layers, width)
+    keys, last = cluster_keys(view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins,
+                              layers=layers)
     unique, pixel_cluster, count = find_clusters(keys.reshape(-1), capacity=cluster_capacity)
     valid = unique != NO_KEY
     points, normals = view_position.reshape(-1, 3), view_normal.reshape(-1, 3)
@@ -534,13 +539,15 @@ def shade_cluster_lists(surface: dict, lists, pixel_cluster, lights: Lights, cam
 def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                     distribution: str, light_chunk: int | None, tile: int, normal_bins: int, bounds: str,
                     normal_cones: str, assignment: str, cluster_capacity: int, cluster_light_capacity: int,
-                    tree_branching: int, frontier_capacity: int, grid_capacity: int):
+                    tree_branching: int, frontier_capacity: int, grid_capacity: int, layers: int = 1):
     """Clustered shading of per-pixel surfaces (steps 1–5 of the module docstring).
 
     ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
     (world space, as in ``shade_deferred``); ``lights`` N lights; ``camera`` the scene camera (its eye
     shades, its view transform and projection define the clusters); ``ambient``, ``background`` [3];
-    ``shadow`` None or [H, W, K]; the static options are those of the specification.
+    ``shadow`` None or [H, W, K]; the static options are those of the specification; ``layers`` L
+    (static): the surface holds L images of the camera's resolution stacked along the rows (translucent
+    layers, :func:`cluster_keys`), clustered together.
     Returns ``(hdr float32 [H, W, 3], counters)`` (module docstring).
     """
     coverage = surface["coverage"]
@@ -548,7 +555,7 @@ def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, b
     view_normal = to_view(camera, surface["normal"], vectors=True)
     clusters, pixel_cluster = build_clusters(view_position, view_normal, coverage, camera, tile=tile,
                                              normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
-                                             cluster_capacity=cluster_capacity)
+                                             cluster_capacity=cluster_capacity, layers=layers)
     lists, counts, stats = assign_lights(lights, camera, clusters, assignment=assignment,
                                          cluster_light_capacity=cluster_light_capacity,
                                          tree_branching=tree_branching, frontier_capacity=frontier_capacity,

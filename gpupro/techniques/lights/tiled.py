@@ -167,10 +167,17 @@ def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, tile: i
     (static) cull by per-tile depth ranges. Returns ``(lists int32 [T, C], counts int32 [T])`` with
     C = min(tile_capacity, N) and counts before truncation.
     """
+    bounds = tile_depth_bounds(view_depth, coverage, tile=tile) if depth_bounds else None
+    return tile_light_lists(lights, camera, bounds, shape=jnp.shape(coverage), tile=tile, tile_capacity=tile_capacity)
+
+
+def tile_light_lists(lights: Lights, camera: Camera, tile_depths, *, shape, tile: int, tile_capacity: int):
+    """Per-tile lists of the ``lights`` whose screen and depth bounds overlap each tile of an image of
+    ``shape`` (H, W) (static, as ``tile`` and ``tile_capacity``); ``tile_depths``: None (no depth culling)
+    or [T, 2] view-depth ranges. Returns ``(lists int32 [T, C], counts int32 [T])`` as :func:`cull_lights`."""
     centre, radius = light_spheres(lights)
     rect, light_depth = screen_bounds(centre, radius, camera)
-    bounds = tile_depth_bounds(view_depth, coverage, tile=tile) if depth_bounds else None
-    overlap = tile_overlaps(rect, light_depth, bounds, tiles_yx=tile_grid(jnp.shape(coverage), tile=tile), tile=tile)
+    overlap = tile_overlaps(rect, light_depth, tile_depths, tiles_yx=tile_grid(shape, tile=tile), tile=tile)
     return fill_light_lists(overlap, min(tile_capacity, lights.count))
 
 
