@@ -308,6 +308,8 @@ def cornell_box(*, translucent: bool = False, resolution=DEFAULT_RESOLUTION, lig
     2.3 × 2.2 standing upright near the opening (opacity 0.5), which overlaps the cube on screen, so that
     up to 3 translucent layers lie in front of the opaque surfaces.
     """
+    if not isinstance(translucent, bool):
+        raise ValueError(f"option translucent must be true or false, got {translucent!r}")
     w, h, d = 5.56, 5.488, 5.592
     white = [
         _quad((0, 0, 0), (0, 0, d), (w, 0, 0)),  # floor, facing +y

@@ -643,7 +643,8 @@ CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
 CLUSTERED_NOTES = ("Missing from Paper II: the tile-local sort and the page tables (Pt) for finding unique clusters "
                    "(here one global sort and compaction, Fig. 5), the packed light-index list (here a padded [C, L] "
                    "array), the warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed "
-                   "capacity), MSAA and transparency. Spot lights are culled as cones, not as the paper's spheres.")
+                   "capacity) and MSAA. Spot lights are culled as cones, not as the paper's spheres. Transparency is "
+                   "translucent_forward with light_lists = 'clustered' (clusters of the translucent samples).")
 # The generic tests take the light tree (its frontier capacity among the capacities they force small);
 # brute-force assignment, "auto"'s choice at these sizes, is checked against it in tests/test_clustered.py.
 CLUSTERED_EXAMPLE = {"tile": 8, "tree_branching": 4, "cluster_capacity": 256, "cluster_light_capacity": 32,

@@ -286,10 +286,10 @@ TILED_COUNTERS = SHADING_COUNTERS[:1] + (
     Counter("max_lights_per_tile", "the longest tile list before truncation"),
 ) + SHADING_COUNTERS[1:]
 TILED_NOTES = ("Missing from Paper I: the packed light-index list (offsets and sizes into one concatenated list; "
-               "here a padded [T, C] array), the single-kernel variant with per-tile frustum planes, "
-               "transparency (far-Z-only culling in a forward pass over blended geometry) and MSAA; screen "
-               "bounds are the projected corners of each sphere's bounding cube, not the tight tangent-plane "
-               "bound of Lengyel / Sigg et al.")
+               "here a padded [T, C] array), the single-kernel variant with per-tile frustum planes "
+               "and MSAA; screen bounds are the projected corners of each sphere's bounding cube, not the tight "
+               "tangent-plane bound of Lengyel / Sigg et al. Transparency (sec. 4, far-Z-only culling in a forward "
+               "pass over blended geometry) is translucent_forward with light_lists = 'tiled'.")
 TILED_EXAMPLE = {"tile": 8}
 
 register(Technique(

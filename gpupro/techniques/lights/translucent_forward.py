@@ -113,6 +113,14 @@ def shade_layers_brute_force(layers: dict, lights: Lights, camera: Camera, *, am
     return hdr.reshape(n_layers, height, -1, 3), counters
 
 
+def far_opaque_bounds(opaque_depth, opaque_coverage, camera: Camera, *, tile: int):
+    """Per-tile view-depth ranges [T, 2] (world units) that bound translucent samples (Paper I, sec. 6.3):
+    [near, the farthest opaque view depth of the tile], +∞ where a pixel of the tile has no opaque
+    surface. ``opaque_depth``, ``opaque_coverage`` [H, W] (``view_depth``, ``coverage``); ``tile`` static."""
+    far = downsample_max_depth(opaque_depth, opaque_coverage, scale=tile)
+    return jnp.stack([jnp.full_like(far, camera.near), far], axis=1)
+
+
 def shade_layers_tiled(layers: dict, opaque_depth, opaque_coverage, lights: Lights, camera: Camera, *, ambient,
                        distribution: str, light_chunk: int | None, tile: int, tile_capacity: int, depth_bounds: bool):
     """Tiled forward shading of the translucent ``layers`` ([K, H, W(, C)]) with per-tile lists culled by
@@ -121,10 +129,7 @@ def shade_layers_tiled(layers: dict, opaque_depth, opaque_coverage, lights: Ligh
     counters)`` (those of ``tiled_deferred``, over the translucent samples)."""
     n_layers, height, width = jnp.shape(layers["coverage"])
     tiles_y, tiles_x = tile_grid((height, width), tile=tile)
-    bounds = None
-    if depth_bounds:
-        far = downsample_max_depth(opaque_depth, opaque_coverage, scale=tile)  # +inf where a pixel is empty
-        bounds = jnp.stack([jnp.full_like(far, camera.near), far], axis=1)
+    bounds = far_opaque_bounds(opaque_depth, opaque_coverage, camera, tile=tile) if depth_bounds else None
     lists, counts = tile_light_lists(lights, camera, bounds, shape=(height, width), tile=tile,
                                      tile_capacity=tile_capacity)
     # Each layer padded to whole tiles, so that stacked tile g lies over screen tile g mod T.
@@ -221,8 +226,9 @@ FRAGMENT_COUNTER = Counter("translucent_fragments", "translucent samples shaded 
 OPTIONS = (Option("light_lists", "tiled", one_of(*LIGHT_LISTS),
                    "light lists: tiled (Paper I, tiles culled by [near, farthest opaque depth]), clustered (Paper II, "
                    "clusters of the translucent samples) or light_linked_list (GPU Pro 6 III.1, lists of the opaque "
-                   "depth walked with each sample's depth bounds)"),) + _unique(TILED_OPTIONS + CLUSTERED_OPTIONS
-                                                                                  + LLL_OPTIONS)
+                   "depth walked with each sample's depth bounds)"),) + _unique(
+    tuple(o._replace(doc="tiled: cull lights outside each tile's [near, farthest opaque view depth]")
+          if o.name == "depth_bounds" else o for o in TILED_OPTIONS) + CLUSTERED_OPTIONS + LLL_OPTIONS)
 CAPACITIES = (_when(TILED_CAPACITIES, "tiled") + _when(CLUSTERED_CAPACITIES, "clustered")
               + _when(LLL_CAPACITIES, "light_linked_list"))
 COUNTERS = _unique((
