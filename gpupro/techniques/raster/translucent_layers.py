@@ -140,6 +140,8 @@ COUNTERS = (
     Counter("translucent_fragments", "translucent fragments kept in the K layers"),
     Counter("layer_overflow", "pixels with a translucent fragment past layer K in front of the opaque surface"),
 )
+CAPACITIES = (Capacity("layer_capacity", "layer_overflow", "translucent layers per pixel; fragments past the last "
+                       "are not drawn", small=1),)
 
 register(Technique(
     id="translucent_layers",
@@ -151,8 +153,7 @@ register(Technique(
     inputs=OPAQUE,
     outputs=LAYERS,
     options=OPTIONS,
-    capacities=(Capacity("layer_capacity", "layer_overflow", "translucent layers per pixel; fragments past the "
-                         "last are not drawn", small=1),),
+    capacities=CAPACITIES,
     counters=COUNTERS,
     reference="translucent_layers_reference",
 ))
@@ -167,7 +168,6 @@ register(Technique(
     inputs=OPAQUE,
     outputs=LAYERS,
     options=OPTIONS,
-    capacities=(Capacity("layer_capacity", "layer_overflow", "translucent layers per pixel; fragments past the "
-                         "last are not drawn", small=1),),
+    capacities=CAPACITIES,
     counters=COUNTERS,
 ))
