@@ -127,12 +127,24 @@ def test_a_bad_floor_is_named():
         rasterize(clip, faces, resolution=RES, floor=np.zeros(RES))
 
 
+def test_layers_are_blended_back_to_front_over_the_opaque_image():
+    """Two layers over C: α0 L0 + (1 − α0) (α1 L1 + (1 − α1) C), straight radiance; an empty layer (α = 0)
+    changes nothing."""
+    rng = np.random.default_rng(5)
+    opaque, radiance = rng.uniform(0, 2, (2, 3, 3)), rng.uniform(0, 2, (3, 2, 3, 3))
+    alpha = np.stack([rng.uniform(0, 1, (2, 3)), rng.uniform(0, 1, (2, 3)), np.zeros((2, 3))])
+    expected = alpha[0, ..., None] * radiance[0] + (1 - alpha[0, ..., None]) * (
+        alpha[1, ..., None] * radiance[1] + (1 - alpha[1, ..., None]) * opaque)
+    np.testing.assert_allclose(tf.composite(opaque, radiance, alpha), expected, rtol=1e-6)
+
+
 # --- the Cornell box with its translucent cube and pane ------------------------------------------------
 
 
 def _lights():
     """Lights in and around the box, and the awkward ones: behind the camera, crossing the near plane,
-    holding the eye, and a directional light."""
+    holding the eye, a directional light, and one that reaches the pane but no opaque surface (only the far
+    opaque depth may bound the translucent samples' lists)."""
     rng = np.random.default_rng(0)
     scene = gp.scenes.cornell_box(resolution=RES)
     lo, hi = (np.asarray(b) for b in scene.bounds())
@@ -140,11 +152,12 @@ def _lights():
                       direction=rng.normal(size=(16, 3)), color=rng.uniform(0.5, 3.0, (16, 3)),
                       range=rng.uniform(1.0, 2.5, 16), inner_angle_degrees=10.0, outer_angle_degrees=50.0)
     eye = np.asarray(scene.camera.eye)
-    special = make_lights([POINT, POINT, SPOT, POINT, DIRECTIONAL],
-                          position=[eye - [0, 0, 3], eye + [0.3, 0, 0.05], eye + [0, 0, 0.05], eye - [0, 0, 2], (0, 0, 0)],
-                          direction=[(0, 0, 1), (0, 0, 1), (0, 0, 1), (0, 0, 1), (0.2, -1, 0.5)],
-                          color=[(5, 5, 5), (1, 1, 1), (1, 1, 1), (3, 3, 3), (0.2, 0.2, 0.2)],
-                          range=[1.0, 0.5, 0.7, 11.0, 1.0], inner_angle_degrees=20.0, outer_angle_degrees=40.0)
+    special = make_lights([POINT, POINT, SPOT, POINT, DIRECTIONAL, POINT],
+                          position=[eye - [0, 0, 3], eye + [0.3, 0, 0.05], eye + [0, 0, 0.05], eye - [0, 0, 2], (0, 0, 0),
+                                    (2.78, 2.0, -0.3)],
+                          direction=[(0, 0, 1), (0, 0, 1), (0, 0, 1), (0, 0, 1), (0.2, -1, 0.5), (0, 0, 1)],
+                          color=[(5, 5, 5), (1, 1, 1), (1, 1, 1), (3, 3, 3), (0.2, 0.2, 0.2), (4, 4, 4)],
+                          range=[1.0, 0.5, 0.7, 11.0, 1.0, 1.0], inner_angle_degrees=20.0, outer_angle_degrees=40.0)
     return concatenate_lights([scene.lights, box, special])
 
 
