@@ -122,6 +122,31 @@ def test_obj_quads_triangulated_with_uv_and_mtl(tmp_path):
     assert (normals[:, 2] > 0).all()  # counter-clockwise, facing +z, as written
 
 
+@pytest.mark.parametrize("lines, opacity", [("d 0.25", 0.25), ("Tr 0.25", 0.75), ("d 0.5\nTr 0.9", 0.5), ("", 1.0)])
+def test_mtl_dissolve_or_transparency_is_the_opacity(tmp_path, lines, opacity):
+    (tmp_path / "t.mtl").write_text(f"newmtl glass\nKd 0.2 0.4 0.6\n{lines}\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nusemtl glass\nf 1 2 3\n")
+    _, materials = load_mesh(tmp_path / "t.obj")
+    np.testing.assert_allclose(materials.opacity, [opacity], atol=1e-6)
+
+
+def test_mtl_opacity_out_of_range_is_named(tmp_path):
+    (tmp_path / "t.mtl").write_text("newmtl glass\nKd 0.2 0.4 0.6\nd 1.5\n")
+    (tmp_path / "t.obj").write_text("mtllib t.mtl\nv 0 0 0\nv 1 0 0\nv 1 1 0\nusemtl glass\nf 1 2 3\n")
+    with pytest.raises(MeshError, match=r"material 'glass': d '1.5' is not one number in \[0, 1\]"):
+        load_mesh(tmp_path / "t.obj")
+
+
+@pytest.mark.parametrize("mode, opacity", [("BLEND", 0.4), ("OPAQUE", 1.0), ("MASK", 1.0)])
+def test_gltf_blend_takes_the_base_colour_alpha_as_opacity(tmp_path, mode, opacity):
+    box = trimesh.creation.box()
+    box.visual = trimesh.visual.TextureVisuals(material=PBRMaterial(baseColorFactor=[255, 0, 0, 102], alphaMode=mode))
+    path = tmp_path / "glass.glb"
+    path.write_bytes(trimesh.exchange.gltf.export_glb(trimesh.Scene(box)))
+    _, materials = load_mesh(path)
+    np.testing.assert_allclose(materials.opacity, [opacity], atol=1e-6)
+
+
 def test_mirrored_instance_keeps_outward_winding(tmp_path):
     scene = trimesh.Scene()
     scene.add_geometry(trimesh.creation.box(), node_name="mirrored", transform=np.diag([-1.0, 1.0, 1.0, 1.0]))

@@ -20,6 +20,10 @@ GREY = [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]
         (dict(emission=[[np.inf, 0, 0], [0, 0, 0]]), "materials: emission: material 0 has a NaN or infinite value"),
         (dict(roughness=[np.nan, 0.5]), "materials: roughness: material 0 has a NaN or infinite value"),
         (dict(metallic=[0.0, 0.0, 0.0]), "materials: metallic must have shape [2], got [3]"),
+        (dict(opacity=[1.0, 1.5]), "materials: opacity: material 1 has 1.5; allowed: finite and in [0, 1]"),
+        (dict(opacity=[-0.25, 1.0]), "materials: opacity: material 0 has -0.25; allowed: finite and in [0, 1]"),
+        (dict(opacity=[np.nan, 1.0]), "materials: opacity: material 0 has a NaN or infinite value"),
+        (dict(opacity=[1.0]), "materials: opacity must have shape [2], got [1]"),
     ],
 )
 def test_out_of_range_values_are_named(kwargs, message):

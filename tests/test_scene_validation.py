@@ -36,6 +36,7 @@ BAD = [
     ("lights", "cos_inner", (1,), 0.1, "spot light 1 has cos_inner 0.1 < cos_outer"),
     ("materials", "roughness", (0,), -0.5, "material 0 has -0.5; allowed: finite and in [0, 1]"),
     ("materials", "metallic", (0,), 2.0, "material 0 has 2; allowed: finite and in [0, 1]"),
+    ("materials", "opacity", (0,), 1.25, "material 0 has 1.25; allowed: finite and in [0, 1]"),
     ("materials", "base_color", (0, 1), -1.0, "material 0 has [0.8, -1, 0.8]"),
     ("materials", "emission", (0, 0), np.inf, "material 0 has a NaN or infinite value"),
     ("materials", "texture_index", (0,), 0, "material 0 has texture 0; allowed: -1 (none)"),

@@ -13,8 +13,8 @@
 The heavier of these (gradients, jit against eager, reference, capacities) are marked ``slow`` for the
 families in :data:`SLOW_FAMILIES`, whose cases do not yet fit the CI budget, the capacity and gradient
 cases of the :data:`TWINS`, the eager runs of :data:`EAGER_SLOW`, the gradient cases of
-:data:`GRADIENT_SLOW`, the :data:`FURTHER_CAPACITIES`, the :data:`OWN_CAPACITY_TESTS` and the
-:data:`REFERENCE_SLOW` cases; ``pytest -m slow
+:data:`GRADIENT_SLOW`, the :data:`FURTHER_CAPACITIES`, the :data:`OWN_CAPACITY_TESTS`, the
+:data:`REFERENCE_SLOW` cases and those of the :data:`TRANSLUCENT` passes; ``pytest -m slow
 tests/test_techniques.py`` runs them (the GPU machine's whole-suite run includes them).
 """
 
@@ -39,7 +39,9 @@ RES = (24, 24)
 
 
 def _scenes():
-    cornell = gp.scenes.cornell_box(resolution=RES)
+    # The box holds translucent objects (left out by the opaque passes, drawn by translucent_layers and
+    # translucent_forward), so every technique also shows that translucent triangles hide nothing.
+    cornell = gp.scenes.cornell_box(resolution=RES, translucent=True)
     lo, hi = cornell.bounds()
     lights = gp.scene.uniform_in_box(jax.random.PRNGKey(1), 12, lo, hi, light_range=2.5, intensity=2.0)
     # A sphere on an open background, lit by a spot and a point light: empty pixels and both light kinds.
@@ -77,6 +79,16 @@ GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled
 the lights), as those of ``deferred`` do in the default suite: their gradient cases (17–30 s each on
 the 2-core CPU) run with ``-m slow``; and ``edge_aa``, whose own tests check its parameters' gradients
 on synthetic G-buffers (here the case differentiates through the passes producing its inputs, 28 s)."""
+
+
+GRADIENT_SCENES = {"translucent_forward": "cornell", "translucent_forward_reference": "cornell"}
+"""Techniques whose gradient case needs the Cornell box (its translucent layers) instead of the sphere."""
+
+TRANSLUCENT = {"translucent_layers", "translucent_layers_reference", "translucent_forward", "translucent_forward_reference"}
+"""The translucent passes: each frame rasterizes K + 1 peels besides the opaque passes, so their heavy generic
+cases (gradients, eager runs, capacities, references) run with ``-m slow``; tests/test_translucent.py
+covers by default what they check: tiled peeling against a sort of every fragment, tiled lists against
+brute force, the layer capacity grown by ``render``."""
 
 
 def _cases(cases, *, slow=frozenset()):
@@ -174,7 +186,7 @@ def _agree(analytic, numeric, rtol=0.05):
     return abs(analytic - numeric) <= rtol * max(abs(analytic), abs(numeric), 1e-3)
 
 
-@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED, slow=TWINS | GRADIENT_SLOW))
+@pytest.mark.parametrize("technique_id", _cases(GRADIENT_CHECKED, slow=TWINS | GRADIENT_SLOW | TRANSLUCENT))
 def test_parameters_and_light_values_have_correct_gradients(technique_id):
     """One reverse-mode gradient per technique, against central differences: along a random direction
     in each declared continuous parameter (moved away from zero, where tone curves and clamps have
@@ -182,7 +194,7 @@ def test_parameters_and_light_values_have_correct_gradients(technique_id):
     (culling is discontinuous in the lights, shading is not)."""
     output = next(b.name for b in TECHNIQUES[technique_id].outputs if b.image)
     pipeline = _example(technique_id, outputs=(output,))
-    frame, scene, params = pipeline.frame((output,)), SCENES["sphere"], pipeline.init_params()
+    frame, scene, params = pipeline.frame((output,)), SCENES[GRADIENT_SCENES.get(technique_id, "sphere")], pipeline.init_params()
     names = [name for t, name in DIFFERENTIABLE if t == technique_id]
     values = {("param", n): params[technique_id][n] + 0.3 for n in names}
     values.update({("light", k): getattr(scene.lights, k) for k in (LIGHT_VALUES if technique_id in SHADING else ())})
@@ -211,7 +223,7 @@ def test_parameters_and_light_values_have_correct_gradients(technique_id):
         assert _agree(analytic, _central_difference(loss, values, direction, lights, 1.0)), "light values"
 
 
-@pytest.mark.parametrize("technique_id", _cases(IDS, slow=EAGER_SLOW))
+@pytest.mark.parametrize("technique_id", _cases(IDS, slow=EAGER_SLOW | TRANSLUCENT))
 def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id):
     pipeline = _example(technique_id)
     params, scene = pipeline.init_params(), SCENES["sphere"]
@@ -227,7 +239,8 @@ def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id
 
 
 WITH_REFERENCE = [(t.id, scene) for t in TECHNIQUES.values() if t.reference for scene in SCENES]
-REFERENCE_SLOW = {(t, scene) for t, scene in WITH_REFERENCE if TECHNIQUES[t].family == "lights" and scene == "sphere"}
+REFERENCE_SLOW = {(t, scene) for t, scene in WITH_REFERENCE
+                  if (TECHNIQUES[t].family == "lights" and scene == "sphere") or t in TRANSLUCENT}
 """The many-light techniques' sphere-scene case (7–11 s each on the 2-core CPU) runs with ``-m slow``: their
 cornell cases run by default, and each technique's own tests compare it with brute force on a scene with
 empty pixels and spot lights."""
@@ -255,7 +268,7 @@ OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred"}
 (tests/test_fptl.py, tests/test_tiled_shading.py): their generic case (16–17 s each) runs with ``-m slow``."""
 
 
-@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES | OWN_CAPACITY_TESTS), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
+@pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES | OWN_CAPACITY_TESTS | TRANSLUCENT), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]

@@ -6,4 +6,4 @@ from gpupro.raster.interpolate import Interpolated, interpolate
 from gpupro.raster.multisample import resolve, sample_weights
 from gpupro.raster.rasterize import Fragments, rasterize, reference
 from gpupro.raster.surface import (MIN_NORMAL_DOT_VIEW, SURFACE_BUFFERS, bend_towards_viewer, normalize, rasterize_scene,
-                                   surface_from_fragments)
+                                   split_faces, surface_from_fragments)

@@ -153,6 +153,25 @@ def _check_samples(samples) -> int:
     return int(samples)
 
 
+def _check_floor(floor, resolution, samples: int, where: str):
+    """``floor`` as (depth float32, triangle id int32) [H, W, S], or None; ValueError naming it otherwise."""
+    if floor is None:
+        return None
+    shape = tuple(resolution) + ((samples,) if samples > 1 else ())
+    if not isinstance(floor, (tuple, list)) or len(floor) != 2:
+        raise ValueError(f"{where}: floor must be (depth, triangle_id), two arrays of shape {list(shape)}, got {type(floor).__name__}")
+    depth, ids = jnp.asarray(floor[0], jnp.float32), jnp.asarray(floor[1])
+    for name, array in (("depth", depth), ("triangle_id", ids)):
+        if array.shape != shape:
+            raise ValueError(f"{where}: floor {name} must have shape {list(shape)}, got {list(array.shape)}")
+    if not jnp.issubdtype(ids.dtype, jnp.integer):
+        raise ValueError(f"{where}: floor triangle_id must be integers, got {ids.dtype}")
+    if not isinstance(depth, jax.core.Tracer) and bool(jnp.any(jnp.isnan(depth))):
+        raise ValueError(f"{where}: floor depth contains NaN")
+    per_sample = lambda a: a.reshape(tuple(resolution) + (samples,))
+    return per_sample(depth), per_sample(ids.astype(jnp.int32))
+
+
 def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -> Fragments:
     """Fragments of per-sample ids and depths [H, W, S], interpolated at pixel centres; S = 1 is squeezed."""
     height, width = resolution
@@ -167,12 +186,12 @@ def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -
 
 @functools.partial(jax.jit, static_argnames=("resolution", "samples", "cull_backfaces", "tile", "tile_capacity",
                                               "pair_capacity", "chunk_batch", "tail_batch"))
-def _rasterize_padded(clip, faces, valid, *, resolution, samples, cull_backfaces, tile, tile_capacity, pair_capacity,
-                      chunk_batch, tail_batch) -> Fragments:
+def _rasterize_padded(clip, faces, valid, floor, *, resolution, samples, cull_backfaces, tile, tile_capacity,
+                      pair_capacity, chunk_batch, tail_batch) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
     triangle_id, depth, counters = rasterize_tiled(
         setup, resolution=resolution, samples=samples, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity,
-        chunk_batch=chunk_batch, tail_batch=tail_batch
+        chunk_batch=chunk_batch, tail_batch=tail_batch, floor=floor,
     )
     # Only the caller's valid faces: padding and replaced faces all read vertex 0, which may be NaN.
     counters["nonfinite_triangles"] = jnp.sum(~setup.finite & valid).astype(jnp.int32)
@@ -180,9 +199,9 @@ def _rasterize_padded(clip, faces, valid, *, resolution, samples, cull_backfaces
 
 
 @functools.partial(jax.jit, static_argnames=("resolution", "samples", "cull_backfaces"))
-def _reference_padded(clip, faces, *, resolution, samples, cull_backfaces) -> Fragments:
+def _reference_padded(clip, faces, floor, *, resolution, samples, cull_backfaces) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
-    triangle_id, depth = rasterize_brute_force(setup, resolution=resolution, samples=samples)
+    triangle_id, depth = rasterize_brute_force(setup, resolution=resolution, samples=samples, floor=floor)
     return _fragments(setup, triangle_id, depth, {}, resolution)
 
 
@@ -198,6 +217,7 @@ def rasterize(
     pair_capacity: int | None = None,
     chunk_batch: int | None = None,
     tail_batch: int | None = None,
+    floor: tuple | None = None,
 ) -> Fragments:
     """Rasterizes triangles with the tiled rasterizer.
 
@@ -220,6 +240,11 @@ def rasterize(
         pairs a step, >= 0 or None; 0 resolves it as a chunk like the others (static; None: the
         number of tiles on a CPU from :data:`TAIL_MIN_TILES` tiles up, where lightly loaded tiles
         would waste most of a chunk, else 0; :func:`_default_tail_batch` says why).
+      floor: None, or ``(depth, triangle_id)``, float32 and integer [H, W] ([H, W, S] multisampled): a
+        depth-peeling floor. Only fragments strictly after it in (window depth, triangle id) order are
+        drawn (behind it, or at its depth with a higher id: :func:`gpupro.raster.tiled.above_floor`), so
+        the previous layer's ids and depths give the next layer; a depth of +inf draws nothing there,
+        -inf everything. None costs nothing.
 
     Returns:
       :class:`Fragments`. Nothing is dropped when a capacity is exceeded: the excess is processed
@@ -239,6 +264,7 @@ def rasterize(
     pair_capacity = _check_option("pair_capacity", pair_capacity, optional=True)
     chunk_batch = _check_option("chunk_batch", chunk_batch, optional=True)
     tail_batch = _check_tail_batch(tail_batch)
+    floor = _check_floor(floor, resolution, samples, "rasterize")
     num_faces = faces.shape[0]
     faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
     num_tiles = -(-resolution[0] // tile) * -(-resolution[1] // tile)
@@ -247,6 +273,7 @@ def rasterize(
         clip,
         faces,
         valid,
+        floor,
         resolution=resolution,
         samples=samples,
         cull_backfaces=cull_backfaces,
@@ -266,19 +293,21 @@ def reference(
     resolution: tuple[int, int],
     samples: int = 1,
     cull_backfaces: bool = False,
+    floor: tuple | None = None,
 ) -> Fragments:
     """Brute-force rasterization with the same inputs and outputs as :func:`rasterize`.
 
     ``clip`` float32 [V, 4], ``faces`` integer [F, 3], ``resolution`` (height, width), ``samples`` per
-    pixel; returns :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics; a sample axis
+    pixel, ``floor`` None or a depth-peeling floor (depth, triangle id) [H, W(, S)] as in :func:`rasterize`; returns :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics; a sample axis
     after H, W when ``samples`` > 1).
     Every triangle is tested at every sample; ``counters`` has ``pixel_triangle_tests`` (F H W) and
     ``invalid_faces`` (faces with an index outside [0, V), never drawn, as in :func:`rasterize`).
     """
     clip, faces, resolution = _check_inputs(clip, faces, resolution, "reference")
     samples = _check_samples(samples)
+    floor = _check_floor(floor, resolution, samples, "reference")
     tests = jnp.int32(faces.shape[0] * resolution[0] * resolution[1])
     faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
     clip, faces, _ = _pad(clip, faces, valid)
-    frags = _reference_padded(clip, faces, resolution=resolution, samples=samples, cull_backfaces=cull_backfaces)
+    frags = _reference_padded(clip, faces, floor, resolution=resolution, samples=samples, cull_backfaces=cull_backfaces)
     return frags._replace(counters={"pixel_triangle_tests": tests, "invalid_faces": invalid})

@@ -13,14 +13,16 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.raster.setup import TriangleSetup, evaluate, sample_offsets
-from gpupro.raster.tiled import NO_TRIANGLE
+from gpupro.raster.tiled import NO_TRIANGLE, above_floor
 
 
 @functools.partial(jax.jit, static_argnames=("resolution", "samples", "chunk"))
 def rasterize_brute_force(setup: TriangleSetup, *, resolution: tuple[int, int], samples: int = 1,
-                          chunk: int = 32) -> tuple[jax.Array, jax.Array]:
+                          chunk: int = 32, floor=None) -> tuple[jax.Array, jax.Array]:
     """Returns ``(triangle_id int32 [H, W, S], depth float32 [H, W, S])`` at ``samples`` = S samples per
-    pixel, each sample measured from its own pixel's centre: -1 and 1 where nothing is covered."""
+    pixel, each sample measured from its own pixel's centre: -1 and 1 where nothing is covered.
+    ``floor``: None, or (depth, triangle id) [H, W, S] that a drawn fragment must come after
+    (:func:`gpupro.raster.tiled.above_floor`)."""
     height, width = resolution
     num_faces = setup.visible.shape[0]
     padded = -(-num_faces // chunk) * chunk
@@ -36,6 +38,8 @@ def rasterize_brute_force(setup: TriangleSetup, *, resolution: tuple[int, int], 
         covered, depth = evaluate(setup, group[:, None, None], centre_x, centre_y, offset_x, offset_y)
         covered, depth = covered.reshape(group.shape + (height, width, samples)), depth.reshape(group.shape + (height, width, samples))
         depth = jnp.where(covered, depth, jnp.inf)
+        if floor is not None:
+            depth = jnp.where(above_floor(depth, group[:, None, None, None], *floor), depth, jnp.inf)
         best = jnp.min(depth, axis=0)
         winner = jnp.min(jnp.where(depth == best, group[:, None, None, None], NO_TRIANGLE), axis=0)
         # Groups come in triangle order, so on equal depth the earlier (lower) id is kept.

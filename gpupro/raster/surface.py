@@ -110,12 +110,27 @@ def surface_from_fragments(fragments: Fragments, mesh: Mesh, materials: Material
     }
 
 
+def split_faces(mesh: Mesh, materials: Materials) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The mesh's faces split by their material's opacity α: ``(opaque_faces, translucent_faces int32
+    [F, 3], translucent bool [F])``, each face array holding the other kind's faces as [0, 0, 0], which
+    the rasterizer culls (indices not distinct), so triangle ids keep indexing ``mesh.faces``. Translucent
+    (α < 1) triangles are drawn by depth peeling and blended, never into the opaque depth buffer; with
+    every α = 1 the opaque faces are ``mesh.faces`` unchanged."""
+    translucent = materials.opacity[mesh.material_ids] < 1.0
+    return (jnp.where(translucent[:, None], 0, mesh.faces), jnp.where(translucent[:, None], mesh.faces, 0),
+            translucent)
+
+
 def rasterize_scene(scene: Scene, *, cull_backfaces: bool = False, **raster_options) -> Fragments:
-    """Rasterizes ``scene``'s mesh from its camera (:func:`gpupro.raster.rasterize`, at the camera's resolution).
+    """Rasterizes the opaque triangles of ``scene``'s mesh from its camera (:func:`gpupro.raster.rasterize`,
+    at the camera's resolution): triangles whose material has opacity < 1 are left out
+    (:func:`split_faces`) and counted as ``counters["translucent_triangles"]``.
 
     ``raster_options`` are the static options of :func:`gpupro.raster.rasterize` (``samples``, tile,
     capacities), passed through: ``samples=4`` gives multisampled fragments [H, W, 4(, 3)].
     """
     camera = scene.camera
     clip = to_clip(scene.mesh.positions, camera.view_projection())
-    return rasterize(clip, scene.mesh.faces, resolution=camera.resolution, cull_backfaces=cull_backfaces, **raster_options)
+    faces, _, translucent = split_faces(scene.mesh, scene.materials)
+    fragments = rasterize(clip, faces, resolution=camera.resolution, cull_backfaces=cull_backfaces, **raster_options)
+    return fragments._replace(counters=dict(fragments.counters, translucent_triangles=jnp.sum(translucent, dtype=jnp.int32)))

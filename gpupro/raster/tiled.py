@@ -96,13 +96,33 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     return edges_ok & (highest >= 0) & (lowest <= 1)
 
 
+def above_floor(depth, tri, floor_depth, floor_id):
+    """Whether fragments (``depth``, ``tri``) come strictly after the floor (``floor_depth``, ``floor_id``)
+    in (depth, triangle id) order, all of any shape that broadcasts (e.g. [B, C, T² S] against
+    [B, 1, T² S]) → bool: the test of a depth-peeling pass, which keeps fragments behind the previous
+    layer and, at its depth, those of higher id (coplanar ties are then neither lost nor drawn twice)."""
+    return (depth > floor_depth) | ((depth == floor_depth) & (tri > floor_id))
+
+
+def to_tile_layout(image, *, tile: int, samples: int):
+    """Per-sample values [H, W, S] in the z-buffer's layout [tiles, T² S] (inverse of the untiling at the
+    end of :func:`rasterize_tiled`; the padding past the image repeats nothing that is read back)."""
+    height, width = image.shape[:2]
+    tiles_y, tiles_x = -(-height // tile), -(-width // tile)
+    block, blocks, _, _, _ = _sample_layout(tile, samples)
+    image = jnp.pad(image, ((0, tiles_y * tile - height), (0, tiles_x * tile - width), (0, 0)))
+    image = image.reshape(tiles_y, blocks, block, tiles_x, blocks, block, samples).transpose(0, 3, 1, 4, 2, 5, 6)
+    return image.reshape(tiles_y * tiles_x, tile * tile * samples)
+
+
 def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, first, width, *, batch, tile, tiles_x,
-                   samples):
+                   samples, floor=None):
     """Resolves work items into the z-buffer ``zbuf``, ``ids`` [tiles, T² S], ``batch`` items a step.
 
     Tile t (its list: ``counts`` [tiles] triangles from ``tile_start`` in ``tri_sorted``) has ``items[t]``
     items; its item j covers list positions ``first[t] + j · width + [0, width)`` (positions past the
-    list are empty). Returns ``(zbuf, ids, number of items)``."""
+    list are empty). ``floor``: None, or (depth, triangle id) [tiles, T² S] that a fragment must come
+    after (:func:`above_floor`). Returns ``(zbuf, ids, number of items)``."""
     num_tiles = counts.shape[0]
     item_end = jnp.cumsum(items)
     item_start = item_end - items
@@ -121,6 +141,8 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
         base_y = (16 * tile * (t // tiles_x))[:, None, None, None] + block_corner[:, None]  # [B, 1, blocks, 1]
         covered, depth = evaluate(setup, cand[:, :, None, None], base_x, base_y, offset_x, offset_y)
         depth = jnp.where(covered, depth, jnp.inf).reshape(cand.shape + (-1,))  # [B, width, T² S]
+        if floor is not None:
+            depth = jnp.where(above_floor(depth, cand[:, :, None], floor[0][t][:, None], floor[1][t][:, None]), depth, jnp.inf)
         best = jnp.min(depth, axis=1)
         winner = jnp.min(jnp.where(depth == best[:, None], cand[:, :, None], NO_TRIANGLE), axis=1)
         zbuf, ids = merge_depth(zbuf, ids, jnp.where(g < total, t, num_tiles), best, winner)
@@ -131,23 +153,24 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
 
 
 def _resolve_lists(setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capacity, *, batch, tail_batch, tile, tiles_x,
-                   samples):
+                   samples, floor=None):
     """Resolves the tiles' lists into the z-buffer: chunks of ``tile_capacity`` triangles, ``batch`` chunks
     a step; with ``tail_batch`` > 0 only the full chunks, and the pairs left over in each tile (fewer
     than ``tile_capacity``) one by one, ``tail_batch`` pairs a step: a tile holding one triangle then
-    costs one pair's samples, not a chunk's. Returns ``(zbuf, ids, chunks, tail pairs)``."""
+    costs one pair's samples, not a chunk's. ``floor`` as in :func:`_resolve_items`. Returns ``(zbuf,
+    ids, chunks, tail pairs)``."""
     lists = (setup, zbuf, ids, tile_start, counts, tri_sorted)
     zero = jnp.zeros_like(counts)
     if not tail_batch:
         zbuf, ids, chunks = _resolve_items(*lists, -(-counts // tile_capacity), zero, tile_capacity, batch=batch,
-                                           tile=tile, tiles_x=tiles_x, samples=samples)
+                                           tile=tile, tiles_x=tiles_x, samples=samples, floor=floor)
         return zbuf, ids, chunks, jnp.int32(0)
     full = counts // tile_capacity
     zbuf, ids, chunks = _resolve_items(*lists, full, zero, tile_capacity, batch=batch, tile=tile, tiles_x=tiles_x,
-                                       samples=samples)
+                                       samples=samples, floor=floor)
     lists = (setup, zbuf, ids, tile_start, counts, tri_sorted)
     zbuf, ids, tail = _resolve_items(*lists, counts - full * tile_capacity, full * tile_capacity, 1, batch=tail_batch,
-                                     tile=tile, tiles_x=tiles_x, samples=samples)
+                                     tile=tile, tiles_x=tiles_x, samples=samples, floor=floor)
     return zbuf, ids, chunks, tail
 
 
@@ -180,9 +203,12 @@ def rasterize_tiled(
     pair_capacity: int,
     chunk_batch: int,
     tail_batch: int = 0,
+    floor=None,
 ) -> tuple[jax.Array, jax.Array, dict]:
     """Resolves visibility with tiles at ``samples`` samples per pixel (:data:`SAMPLE_PATTERNS`).
 
+    ``floor``: None, or (depth float32, triangle id int32) [H, W, S]: only fragments after it in (depth,
+    id) order are drawn (:func:`above_floor`; a depth-peeling pass).
     Returns ``(triangle_id int32 [H, W, S], depth float32 [H, W, S], counters)``: -1 and 1 where nothing
     is covered.
     """
@@ -206,6 +232,8 @@ def rasterize_tiled(
     slots = jnp.arange(pair_capacity, dtype=jnp.int32)
     block, blocks, _, _, _ = _sample_layout(tile, samples)
     tile_samples = tile * tile * samples
+    if floor is not None:
+        floor = tuple(to_tile_layout(f, tile=tile, samples=samples) for f in floor)
 
     def bin_pass(state):
         base, zbuf, ids, stats = state
@@ -233,7 +261,7 @@ def rasterize_tiled(
         tile_start = jnp.cumsum(counts) - counts
         zbuf, ids, total_chunks, tail_pairs = _resolve_lists(
             setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capacity, batch=chunk_batch, tail_batch=tail_batch,
-            tile=tile, tiles_x=tiles_x, samples=samples)
+            tile=tile, tiles_x=tiles_x, samples=samples, floor=floor)
         tile_counts, passes, chunks_run, tail_run = stats
         stats = (tile_counts + counts, passes + 1, chunks_run + total_chunks, tail_run + tail_pairs)
         return base + pair_capacity, zbuf, ids, stats

@@ -9,11 +9,15 @@ order); this module flattens the scene graph to world space and turns trimesh's 
   "Meshes" (primitive modes) and "Metallic-Roughness Material" (``baseColorFactor``,
   ``metallicFactor`` and ``roughnessFactor`` default to 1, ``emissiveFactor`` to 0; all linear).
 - Wavefront OBJ/MTL: ``Kd`` is the diffuse colour, used as linear base colour;
-  ``Ns`` becomes roughness by trimesh's ``SimpleMaterial.to_pbr`` rule ``(2 / (Ns + 2)) ** 0.25``.
+  ``Ns`` becomes roughness by trimesh's ``SimpleMaterial.to_pbr`` rule ``(2 / (Ns + 2)) ** 0.25``;
+  ``d`` (dissolve, 1 = opaque) is the opacity, or else ``Tr`` (transparency) as 1 − Tr.
+- glTF 2.0 "Alpha Coverage": with ``alphaMode: BLEND`` the alpha of ``baseColorFactor`` is the
+  opacity; ``OPAQUE`` (the default) and ``MASK`` load as opaque (an alpha test on a constant factor is
+  all or nothing, and textures are not read).
 
 What is and is not read:
 
-- one material per distinct set of (base colour, roughness, metallic, emission), in order of first
+- one material per distinct set of (base colour, roughness, metallic, emission, opacity), in order of first
   use; geometry without a material gets trimesh's default grey (102/255, as trimesh's PLY and STL
   loaders also assign it). trimesh stores colour factors as 8-bit RGBA, so base colours are
   quantised to 1/255;
@@ -30,7 +34,7 @@ OBJ face indices that are 0, out of range, or relative (negative) with vertices 
 them; OBJ faces with fewer than 3 corners (dropped silently) and vertex lines with fewer than 3
 coordinates; PLY faces with fewer than 3 corners (dropped silently) or binary PLY faces of mixed
 sizes; glTF triangle-fan primitives (skipped silently); glTF material factors outside glTF's
-ranges and MTL ``Kd`` outside [0, 1] or ``Ns`` < 0 (clamped or passed on silently). NaN/inf
+ranges and MTL ``Kd``, ``d`` or ``Tr`` outside [0, 1] or ``Ns`` < 0 (clamped or passed on silently). NaN/inf
 coordinates and out-of-range indices of other formats are caught per geometry by
 :func:`gpupro.scene.make_mesh`. OBJ faces of more than 3 corners, which trimesh fans from their
 first corner (folding concave polygons over themselves), are triangulated here by ear clipping in
@@ -113,8 +117,8 @@ def load_mesh(path) -> tuple[Mesh, Materials]:
     if not parts:
         found = f" (only {', '.join(sorted(set(skipped)))})" if skipped else ""
         raise MeshError(f"{path}: no triangles in file{found}")
-    base, roughness, metallic, emission = (np.array([k[i] for k in keys], np.float32) for i in range(4))
-    materials = make_materials(base, roughness=roughness, metallic=metallic, emission=emission)
+    base, roughness, metallic, emission, opacity = (np.array([k[i] for k in keys], np.float32) for i in range(5))
+    materials = make_materials(base, roughness=roughness, metallic=metallic, emission=emission, opacity=opacity)
     return concatenate_meshes(parts), materials
 
 
@@ -163,20 +167,39 @@ def _world_part(geometry: trimesh.Trimesh, transform: np.ndarray, material_id: i
 
 
 def _material_key(geometry: trimesh.Trimesh, source: str) -> tuple:
-    """(base colour (r, g, b), roughness, metallic, emission (r, g, b)) of a geometry, linear RGB."""
+    """(base colour (r, g, b), roughness, metallic, emission (r, g, b), opacity) of a geometry, linear RGB."""
     material = getattr(geometry.visual, "material", None)
     if isinstance(material, PBRMaterial):  # factors already checked by _check_gltf
         rgba = material.baseColorFactor
         base = (1.0, 1.0, 1.0) if rgba is None else tuple(np.asarray(rgba[:3], np.float64) / 255.0)
+        opacity = 1.0 if rgba is None or material.alphaMode != "BLEND" else float(rgba[3]) / 255.0
         default_one = lambda x: 1.0 if x is None else float(x)
         emission = material.emissiveFactor
         emission = (0.0, 0.0, 0.0) if emission is None else tuple(float(e) for e in emission)
-        return base, default_one(material.roughnessFactor), default_one(material.metallicFactor), emission
+        return base, default_one(material.roughnessFactor), default_one(material.metallicFactor), emission, opacity
     if isinstance(material, SimpleMaterial):
         _check_mtl(material, source)
         base = tuple(np.asarray(material.diffuse[:3], np.float64) / 255.0)
-        return base, (2.0 / (float(material.glossiness) + 2.0)) ** 0.25, 0.0, (0.0, 0.0, 0.0)
-    return tuple(trimesh.visual.DEFAULT_COLOR[:3] / 255.0), 0.5, 0.0, (0.0, 0.0, 0.0)
+        return base, (2.0 / (float(material.glossiness) + 2.0)) ** 0.25, 0.0, (0.0, 0.0, 0.0), _mtl_opacity(material, source)
+    return tuple(trimesh.visual.DEFAULT_COLOR[:3] / 255.0), 0.5, 0.0, (0.0, 0.0, 0.0), 1.0
+
+
+def _mtl_opacity(material: SimpleMaterial, source: str) -> float:
+    """The opacity of an MTL material: ``d`` (dissolve), else 1 − ``Tr``, else 1; trimesh keeps both as
+    lists of strings in ``kwargs`` (lower-case keys). Raises naming the material for a value that is not
+    one number in [0, 1]."""
+    for key, opacity in (("d", lambda v: v), ("tr", lambda v: 1.0 - v)):
+        if key in material.kwargs:
+            words = material.kwargs[key]
+            try:
+                (value,) = (float(w) for w in words)
+            except ValueError:
+                value = np.nan
+            if not (np.isfinite(value) and 0.0 <= value <= 1.0):
+                raise MeshError(f"{source}: material {material.name!r}: {'d' if key == 'd' else 'Tr'} "
+                                f"{' '.join(words)!r} is not one number in [0, 1]")
+            return opacity(value)
+    return 1.0
 
 
 def _check_mtl(material: SimpleMaterial, source: str) -> None:

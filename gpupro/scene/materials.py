@@ -20,6 +20,9 @@ class Materials:
 
     ``base_color`` float32 [M, 3] linear RGB in [0, 1]; ``roughness`` float32 [M] (perceptual, in [0, 1]);
     ``metallic`` float32 [M] in [0, 1]; ``emission`` float32 [M, 3] (radiance, linear RGB, >= 0);
+    ``opacity`` float32 [M] in [0, 1]: the fraction α of the light from behind that a surface absorbs or
+    reflects (1 − α passes through; 1 opaque, the default), so that a surface of α < 1 is translucent:
+    the opaque passes skip it and :mod:`gpupro.techniques.lights.translucent_forward` blends it;
     ``texture_index`` int32 [M], the base-colour texture of each material or -1;
     ``textures``: a tuple of mip levels, level ``l`` float32 [T, S >> l, S >> l, 3]; empty when T = 0.
     The texture multiplies ``base_color``.
@@ -29,6 +32,7 @@ class Materials:
     roughness: jax.Array
     metallic: jax.Array
     emission: jax.Array
+    opacity: jax.Array
     texture_index: jax.Array
     textures: tuple = ()
 
@@ -37,7 +41,8 @@ class Materials:
         return self.base_color.shape[0]
 
 
-RANGES = {"base_color": (0.0, 1.0), "roughness": (0.0, 1.0), "metallic": (0.0, 1.0), "emission": (0.0, np.inf)}
+RANGES = {"base_color": (0.0, 1.0), "roughness": (0.0, 1.0), "metallic": (0.0, 1.0), "emission": (0.0, np.inf),
+          "opacity": (0.0, 1.0)}
 """Allowed closed range (low, high) of each material parameter; every value must also be finite."""
 
 
@@ -65,13 +70,14 @@ def make_materials(
     roughness=None,
     metallic=None,
     emission=None,
+    opacity=None,
     texture_index=None,
     textures=None,
 ) -> Materials:
     """Builds :class:`Materials` from per-material values (host side, validated).
 
     ``base_color`` [M, 3]; ``roughness``, ``metallic`` [M] (defaults 0.5 and 0); ``emission`` [M, 3]
-    (default 0); ``texture_index`` [M] (default -1); ``textures`` float [T, S, S, 3] with S a power
+    (default 0); ``opacity`` [M] (default 1: opaque); ``texture_index`` [M] (default -1); ``textures`` float [T, S, S, 3] with S a power
     of two, from which the mip pyramid is built. Raises ``ValueError`` naming the argument, the first
     material outside its range (:data:`RANGES`) and the range.
     """
@@ -91,7 +97,9 @@ def make_materials(
     rough = per_material(roughness, 0.5, (m,), "roughness")
     metal = per_material(metallic, 0.0, (m,), "metallic")
     emit = per_material(emission, 0.0, (m, 3), "emission")
-    for name, values in (("base_color", base), ("roughness", rough), ("metallic", metal), ("emission", emit)):
+    alpha = per_material(opacity, 1.0, (m,), "opacity")
+    for name, values in (("base_color", base), ("roughness", rough), ("metallic", metal), ("emission", emit),
+                         ("opacity", alpha)):
         problem = range_problem(name, values)
         if problem:
             raise ValueError(f"materials: {name}: {problem}")
@@ -108,6 +116,7 @@ def make_materials(
         roughness=jnp.asarray(rough),
         metallic=jnp.asarray(metal),
         emission=jnp.asarray(emit),
+        opacity=jnp.asarray(alpha),
         texture_index=jnp.asarray(tex_idx),
         textures=levels,
     )

@@ -294,7 +294,7 @@ def torus(
     return _primitive_scene("torus", options, resolution, lights)
 
 
-def cornell_box(*, resolution=DEFAULT_RESOLUTION, lights: Lights | None = None) -> Scene:
+def cornell_box(*, translucent: bool = False, resolution=DEFAULT_RESOLUTION, lights: Lights | None = None) -> Scene:
     """The Cornell box, 5.56 (x) × 5.488 (y) × 5.592 (z) units, open towards -z (36 triangles).
 
     The camera (as in the original data: eye (2.78, 2.73, -8.0), 39.3° vertical field of view) looks
@@ -302,7 +302,14 @@ def cornell_box(*, resolution=DEFAULT_RESOLUTION, lights: Lights | None = None) 
     on the right. Materials: 0 white, 1 red, 2 green, 3 the ceiling light (a quad 1.30 × 1.05 just
     below the ceiling, emission (17, 12, 4)). Default lights: one point light under the ceiling
     light and a dim fill light near the opening.
+
+    ``translucent`` (not in the Cornell data) adds 14 triangles of two translucent materials: 4 a blue
+    glass cube of side 1.2 on the floor in front of the tall block (opacity 0.35) and 5 an amber pane
+    2.3 × 2.2 standing upright near the opening (opacity 0.5), which overlaps the cube on screen, so that
+    up to 3 translucent layers lie in front of the opaque surfaces.
     """
+    if not isinstance(translucent, bool):
+        raise ValueError(f"option translucent must be true or false, got {translucent!r}")
     w, h, d = 5.56, 5.488, 5.592
     white = [
         _quad((0, 0, 0), (0, 0, d), (w, 0, 0)),  # floor, facing +y
@@ -315,11 +322,17 @@ def cornell_box(*, resolution=DEFAULT_RESOLUTION, lights: Lights | None = None) 
     green = [_quad((0, 0, 0), (0, h, 0), (0, 0, d))]  # facing +x
     # 1 cm below the ceiling so that depth testing never mixes the two
     light = [_quad((2.13, h - 0.01, 2.27), (1.30, 0, 0), (0, 0, 1.05))]
-    mesh = _mesh([white, red, green, light], source="cornell_box")
+    base = [[0.725, 0.71, 0.68], [0.63, 0.065, 0.05], [0.14, 0.45, 0.091], [0.78, 0.78, 0.78]]
+    parts = [white, red, green, light]
+    if translucent:
+        parts += [[_box((3.2, 0.0, 0.6), (4.4, 1.2, 1.8))], [_quad((3.9, 1.0, 0.3), (-2.3, 0, 0), (0, 2.2, 0))]]
+        base += [[0.3, 0.5, 0.9], [0.9, 0.6, 0.2]]
+    mesh = _mesh(parts, source="cornell_box")
     materials = make_materials(
-        [[0.725, 0.71, 0.68], [0.63, 0.065, 0.05], [0.14, 0.45, 0.091], [0.78, 0.78, 0.78]],
-        roughness=[0.9, 0.9, 0.9, 0.9],
-        emission=[[0, 0, 0], [0, 0, 0], [0, 0, 0], [17.0, 12.0, 4.0]],
+        base,
+        roughness=[0.9, 0.9, 0.9, 0.9, 0.2, 0.4][: len(base)],
+        emission=[[0, 0, 0], [0, 0, 0], [0, 0, 0], [17.0, 12.0, 4.0], [0, 0, 0], [0, 0, 0]][: len(base)],
+        opacity=[1.0, 1.0, 1.0, 1.0, 0.35, 0.5][: len(base)],
     )
     camera = make_camera((2.78, 2.73, -8.0), (2.78, 2.73, 0.0), fov_y_degrees=39.3, near=0.1, far=20.0, resolution=resolution)
     default = lambda: point_lights([[2.78, 5.2, 2.8], [2.78, 2.73, 0.5]], [[15.0, 13.0, 10.0], [2.0, 2.0, 2.0]], 12.0)

@@ -94,10 +94,11 @@ def _mesh_problems(mesh, material_count: int):
 
 
 def _material_problems(materials):
-    a = _arrays(materials, ("base_color", "roughness", "metallic", "emission", "texture_index"))
+    a = _arrays(materials, ("base_color", "roughness", "metallic", "emission", "opacity", "texture_index"))
     m = len(a["base_color"])
-    yield from _shape_problems(a, {"base_color": (m, 3), "roughness": (m,), "metallic": (m,), "emission": (m, 3), "texture_index": (m,)})
-    for field in ("base_color", "roughness", "metallic", "emission"):
+    yield from _shape_problems(a, {"base_color": (m, 3), "roughness": (m,), "metallic": (m,), "emission": (m, 3),
+                                   "opacity": (m,), "texture_index": (m,)})
+    for field in ("base_color", "roughness", "metallic", "emission", "opacity"):
         if problem := range_problem(field, a[field]):
             yield field, problem
     count = materials.textures[0].shape[0] if materials.textures else 0

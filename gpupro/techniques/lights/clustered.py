@@ -214,17 +214,20 @@ def last_slice(cells_per_slice: int) -> int:
     return (2**31 - 2) // cells_per_slice - 1
 
 
-def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int):
+def cluster_keys(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int, layers: int = 1):
     """Packed int32 keys [H, W] (module docstring, step 1) of covered samples, :data:`NO_KEY` elsewhere.
     ``view_position``, ``view_normal`` [H, W, 3] view space; ``coverage`` [H, W]; static ``tile`` pixels,
-    ``normal_bins`` X (0: position only). Returns ``(keys, last)``: ``last`` the largest slice (Python int)."""
+    ``normal_bins`` X (0: position only), ``layers`` L: the images hold L layers of H / L rows each stacked
+    along the rows (translucent layers), each keyed as an image of its own. Returns ``(keys, last)``:
+    ``last`` the largest slice (Python int)."""
     height, width = jnp.shape(coverage)
+    height //= layers
     tiles_y, tiles_x = tile_grid((height, width), tile=tile)
     n_bins = 6 * normal_bins * normal_bins if normal_bins else 1
     last = last_slice(tiles_y * tiles_x * n_bins)
     k = depth_slices(-view_position[..., 2], camera, tiles_y=tiles_y, last=last)
     bins = normal_bins_of(view_normal, bins=normal_bins) if normal_bins else 0
-    rows = jnp.arange(height, dtype=jnp.int32)[:, None] // tile
+    rows = jnp.arange(height * layers, dtype=jnp.int32)[:, None] % height // tile
     cols = jnp.arange(width, dtype=jnp.int32)[None, :] // tile
     keys = ((k * n_bins + bins) * tiles_y + rows) * tiles_x + cols
     return jnp.where(jnp.asarray(coverage) > 0, keys, NO_KEY), last
@@ -281,14 +284,17 @@ def explicit_cones(view_normal, pixel_cluster, *, capacity: int):
 
 def build_clusters(view_position, view_normal, coverage, camera: Camera, *, tile: int, normal_bins: int,
                    bounds: str, normal_cones: str, cluster_capacity: int, unique_clusters: str = "sort",
-                   page_size: int = 4096, page_capacity: int = 1):
+                   page_size: int = 4096, page_capacity: int = 1, layers: int = 1):
     """Steps 1–3: keys, occupied clusters and their bounds. ``view_position``, ``view_normal`` [H, W, 3]
     (view space), ``coverage`` [H, W]; static options as in the specification (``unique_clusters``,
-    ``page_size``, ``page_capacity``: :mod:`gpupro.techniques.lights.unique_clusters`). Returns
-    ``(clusters, pixel_cluster int32 [H·W], counters)`` (:class:`Clusters`; the counters of
-    :func:`gpupro.techniques.lights.unique_clusters.unique_clusters_of`)."""
-    shape = jnp.shape(coverage)
-    keys, last = cluster_keys(view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins)
+    ``page_size``, ``page_capacity``: :mod:`gpupro.techniques.lights.unique_clusters`), ``layers`` as in
+    :func:`cluster_keys` (tile-local sorts of stacked layers may find a key once per layer that holds it,
+    each copy with the same implicit bounds). Returns ``(clusters, pixel_cluster int32 [H·W], counters)``
+    (:class:`Clusters`; the counters of :func:`gpupro.techniques.lights.unique_clusters.unique_clusters_of`)."""
+    height, width = jnp.shape(coverage)
+    shape = (height // layers, width)
+    keys, last = cluster_keys(view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins,
+                              layers=layers)
     unique, pixel_cluster, count, stats = unique_clusters_of(keys, method=unique_clusters, tile=tile,
                                                              capacity=cluster_capacity, page_size=page_size,
                                                              page_capacity=page_capacity)
@@ -551,13 +557,15 @@ def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, b
                     normal_cones: str, assignment: str, cluster_capacity: int, cluster_light_capacity: int,
                     tree_branching: int, frontier_capacity: int, grid_capacity: int, unique_clusters: str = "sort",
                     page_size: int = 4096, page_capacity: int = 1, list_layout: str = "padded",
-                    list_memory_capacity: int = 0):
+                    list_memory_capacity: int = 0, layers: int = 1):
     """Clustered shading of per-pixel surfaces (steps 1–5 of the module docstring).
 
     ``surface``: dict with the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`
     (world space, as in ``shade_deferred``); ``lights`` N lights; ``camera`` the scene camera (its eye
     shades, its view transform and projection define the clusters); ``ambient``, ``background`` [3];
-    ``shadow`` None or [H, W, K]; the static options are those of the specification.
+    ``shadow`` None or [H, W, K]; the static options are those of the specification; ``layers`` L
+    (static): the surface holds L images of the camera's resolution stacked along the rows (translucent
+    layers, :func:`cluster_keys`), clustered together.
     Returns ``(hdr float32 [H, W, 3], counters)`` (module docstring).
     """
     coverage = surface["coverage"]
@@ -566,7 +574,7 @@ def shade_clustered(surface: dict, lights: Lights, camera: Camera, *, ambient, b
     clusters, pixel_cluster, cluster_stats = build_clusters(
         view_position, view_normal, coverage, camera, tile=tile, normal_bins=normal_bins, bounds=bounds,
         normal_cones=normal_cones, cluster_capacity=cluster_capacity, unique_clusters=unique_clusters,
-        page_size=page_size, page_capacity=page_capacity)
+        page_size=page_size, page_capacity=page_capacity, layers=layers)
     lists, counts, stats = assign_lights(lights, camera, clusters, assignment=assignment,
                                          cluster_light_capacity=cluster_light_capacity,
                                          tree_branching=tree_branching, frontier_capacity=frontier_capacity,
@@ -670,9 +678,10 @@ CLUSTERED_COUNTERS = TILED_COUNTERS[:3] + (
     Counter("page_overflow", "flagged pages past page_capacity"),
 ) + LIST_MEMORY_COUNTERS + SHADING_COUNTERS[1:]
 CLUSTERED_NOTES = ("Missing from Paper II: the single-pass page allocation (here the paper's two passes), the "
-                   "warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed capacity), MSAA "
-                   "and transparency. Spot lights are culled as cones, not as the paper's spheres. Explicit bounds "
-                   "work with the page table here (a segment reduction), which the paper did not implement.")
+                   "warp-per-cluster depth-first traversal (here a level-by-level frontier of fixed capacity) and "
+                   "MSAA. Spot lights are culled as cones, not as the paper's spheres. Explicit bounds work with the "
+                   "page table here (a segment reduction), which the paper did not implement. Transparency is "
+                   "translucent_forward with light_lists = 'clustered' (clusters of the translucent samples).")
 # The generic tests take the light tree (its frontier capacity among the capacities they force small);
 # brute-force assignment, "auto"'s choice at these sizes, is checked against it in tests/test_clustered.py.
 CLUSTERED_EXAMPLE = {"tile": 8, "tree_branching": 4, "cluster_capacity": 256, "cluster_light_capacity": 32,

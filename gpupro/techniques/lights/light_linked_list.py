@@ -367,13 +367,28 @@ def shade_light_linked_list(surface: dict, lights: Lights, camera: Camera, *, am
     :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`, [H, W] or [H, W, 3]); ``ambient``,
     ``background`` [3]; ``shadow`` None or [H, W, K]; static options as in the specification.
     Returns ``(hdr float32 [H, W, 3], counters)`` (module docstring)."""
+    depth = view_depth_of(surface["position"], camera)
+    lll, counters = build_light_linked_list(lights, camera, depth, surface["coverage"], resolution_scale=resolution_scale,
+                                            pool_capacity=pool_capacity)
+    hdr, shading_counters = shade_image_samples(surface, lll, lights, camera, ambient=ambient, background=background,
+                                                shadow=shadow, distribution=distribution, light_chunk=light_chunk,
+                                                list_capacity=list_capacity)
+    return hdr, dict(counters, **shading_counters)
+
+
+def shade_image_samples(surface: dict, lll: LightLinkedList, lights: Lights, camera: Camera, *, ambient, background,
+                        shadow=None, distribution: str, light_chunk: int | None, list_capacity: int, layers: int = 1):
+    """Step 4 for the pixels of a G-buffer-like ``surface`` (the entries of
+    :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`, [L·H, W] or [L·H, W, 3]: ``layers`` = L
+    images of H rows stacked along the rows, e.g. translucent layers, each pixel shaded from the list of
+    its own (x, y mod H)) with the lists ``lll`` (built from the opaque depth); ``ambient``,
+    ``background`` [3]; ``shadow`` None or [L·H, W, K]. Returns ``(hdr float32 [L·H, W, 3], counters)``:
+    the lighting counters of the module docstring and the walk's capacity ones."""
     coverage = surface["coverage"]
     height, width = jnp.shape(coverage)
-    depth = view_depth_of(surface["position"], camera)
-    lll, counters = build_light_linked_list(lights, camera, depth, coverage, resolution_scale=resolution_scale,
-                                            pool_capacity=pool_capacity)
     flat = lambda x: jnp.asarray(x, jnp.float32).reshape((height * width,) + jnp.shape(x)[2:])
-    ys, xs = jnp.meshgrid(jnp.arange(height, dtype=jnp.int32), jnp.arange(width, dtype=jnp.int32), indexing="ij")
+    ys, xs = jnp.meshgrid(jnp.arange(height, dtype=jnp.int32) % (height // layers), jnp.arange(width, dtype=jnp.int32),
+                          indexing="ij")
     samples = {key: flat(surface[key]) for key in ("position", "normal", "base_color", "roughness", "metallic")}
     direct, evaluated, reached, walked = shade_samples(
         samples, jnp.stack([xs.ravel(), ys.ravel()], axis=1), lll, lights, camera,
@@ -384,8 +399,8 @@ def shade_light_linked_list(surface: dict, lights: Lights, camera: Camera, *, am
     covered = flat(coverage) > 0
     lighting = jnp.sum(jnp.where(covered, evaluated, 0)).astype(jnp.float32)
     exact = jnp.sum(jnp.where(covered, reached, 0.0))
-    capacity = min(list_capacity, pool_capacity)
-    counters.update({
+    capacity = min(list_capacity, lll.light.shape[0])
+    return hdr, {
         "lighting_computations": lighting,
         "exact_lighting_computations": exact,
         "false_positive_rate": jnp.where(lighting > 0, 1.0 - exact / jnp.maximum(lighting, 1.0), 0.0),
@@ -393,8 +408,7 @@ def shade_light_linked_list(surface: dict, lights: Lights, camera: Camera, *, am
         "pixel_list_overflow": jnp.sum(jnp.maximum(lll.count - capacity, 0)),
         "max_lights_per_pixel": jnp.max(lll.count, initial=0),
         "lights": jnp.int32(lights.count),
-    })
-    return hdr, counters
+    }
 
 
 def apply(params, inputs, scene, *, distribution, light_chunk, resolution_scale, pool_capacity, list_capacity):
@@ -407,6 +421,32 @@ def apply(params, inputs, scene, *, distribution, light_chunk, resolution_scale,
     return {"hdr": hdr}, counters
 
 
+LLL_OPTIONS = (
+    Option("resolution_scale", 4, integer(1), "LLL pixels are s × s screen pixels (the chapter: 4 or 8)"),
+    Option("pool_capacity", 1 << 18, integer(1), "links in the pool (grown by the entry points on overflow)"),
+    Option("list_capacity", 128, integer(1), "links walked per LLL pixel (grown by the entry points on overflow)"),
+)
+LLL_CAPACITIES = (
+    Capacity("pool_capacity", "link_pool_overflow", "links of all LLL pixels; the excess is dropped",
+             needed="links_needed"),
+    Capacity("list_capacity", "pixel_list_overflow", "links walked per LLL pixel; the excess is not shaded",
+             needed="max_lights_per_pixel"),
+)
+LLL_COUNTERS = (
+    Counter("exact_lighting_computations", "Σ over covered pixels of the evaluated lights whose influence reaches them (float32)"),
+    Counter("false_positive_rate", "1 − exact / lighting computations (0 when none)"),
+    Counter("light_list_bytes", "bytes of the links stored, 8 per link (the chapter's W'·H'·k·8)"),
+    Counter("lll_pixels", "pixels of the light linked list, W'·H'"),
+    Counter("shell_tests", "(LLL pixel, light) ray–shell interval tests, W'·H'·N"),
+    Counter("lights_rejected_by_depth", "(LLL pixel, light) pairs met by the ray but behind the max opaque depth"),
+    Counter("lights_skipped", "Σ over covered pixels of links walked but outside their depth bounds"),
+    Counter("links_needed", "links the lists need (the pool size that suffices)"),
+    Counter("link_pool_overflow", "links dropped from the full pool"),
+    Counter("max_lights_per_pixel", "the longest LLL pixel list"),
+    Counter("pixel_list_overflow", "links past list_capacity, not walked"),
+)
+"""The light linked list's own options, capacities and counters (shared with translucent_forward)."""
+
 register(Technique(
     id="light_linked_list",
     title="Light Linked List: per-pixel light lists with depth bounds at reduced resolution",
@@ -416,31 +456,10 @@ register(Technique(
     apply=apply,
     inputs=tuple(b for b in SURFACE if b.name in DEFERRED_INPUTS) + (SHADOW,),
     outputs=(HDR,),
-    options=SHADING_OPTIONS + (
-        Option("resolution_scale", 4, integer(1), "LLL pixels are s × s screen pixels (the chapter: 4 or 8)"),
-        Option("pool_capacity", 1 << 18, integer(1), "links in the pool (grown by the entry points on overflow)"),
-        Option("list_capacity", 128, integer(1), "links walked per LLL pixel (grown by the entry points on overflow)"),
-    ),
+    options=SHADING_OPTIONS + LLL_OPTIONS,
     params=SHADING_PARAMS,
-    capacities=(
-        Capacity("pool_capacity", "link_pool_overflow", "links of all LLL pixels; the excess is dropped",
-                 needed="links_needed"),
-        Capacity("list_capacity", "pixel_list_overflow", "links walked per LLL pixel; the excess is not shaded",
-                 needed="max_lights_per_pixel"),
-    ),
-    counters=SHADING_COUNTERS[:1] + (
-        Counter("exact_lighting_computations", "Σ over covered pixels of the evaluated lights whose influence reaches them (float32)"),
-        Counter("false_positive_rate", "1 − exact / lighting computations (0 when none)"),
-        Counter("light_list_bytes", "bytes of the links stored, 8 per link (the chapter's W'·H'·k·8)"),
-        Counter("lll_pixels", "pixels of the light linked list, W'·H'"),
-        Counter("shell_tests", "(LLL pixel, light) ray–shell interval tests, W'·H'·N"),
-        Counter("lights_rejected_by_depth", "(LLL pixel, light) pairs met by the ray but behind the max opaque depth"),
-        Counter("lights_skipped", "Σ over covered pixels of links walked but outside their depth bounds"),
-        Counter("links_needed", "links the lists need (the pool size that suffices)"),
-        Counter("link_pool_overflow", "links dropped from the full pool"),
-        Counter("max_lights_per_pixel", "the longest LLL pixel list"),
-        Counter("pixel_list_overflow", "links past list_capacity, not walked"),
-    ) + SHADING_COUNTERS[1:],
+    capacities=LLL_CAPACITIES,
+    counters=SHADING_COUNTERS[:1] + LLL_COUNTERS + SHADING_COUNTERS[1:],
     reference="deferred",
     example_options={"resolution_scale": 2},
     notes=("Missing from GPU Pro 6 III.1: rasterized, tessellated light shells (here exact analytic ray–ball, "
@@ -448,7 +467,8 @@ register(Technique(
            "conservative), box "
            "shells for area lights (the project has none), the 8-bit light index and 24-bit next link (indices "
            "stay int32, so more than 256 lights work; the memory counter still uses the 8-byte node), the LIFO "
-           "order of the atomic list (a deterministic CSR pool instead), and a forward pass over translucent or "
-           "particle geometry (shade_samples shades any samples from the lists; no registered pass draws them). "
+           "order of the atomic list (a deterministic CSR pool instead), and a forward pass over particles "
+           "(translucent surfaces are drawn: translucent_forward with light_lists = 'light_linked_list' shades "
+           "the depth-peeled layers of translucent_layers from these lists, built on the opaque depth). "
            "The per-LLL-pixel walk is bounded by list_capacity because XLA needs static loop lengths."),
 ))

@@ -250,10 +250,20 @@ def cull_lights(lights: Lights, camera: Camera, view_depth, coverage, *, tile: i
     (static) as in :func:`fill_lists`. Returns ``(lists, counts int32 [T])``: padded int32 [T, C] with
     C = min(tile_capacity, N), or packed lists; counts before truncation.
     """
+    bounds = tile_depth_bounds(view_depth, coverage, tile=tile) if depth_bounds else None
+    return tile_light_lists(lights, camera, bounds, shape=jnp.shape(coverage), tile=tile, tile_capacity=tile_capacity,
+                            list_layout=list_layout, list_memory_capacity=list_memory_capacity)
+
+
+def tile_light_lists(lights: Lights, camera: Camera, tile_depths, *, shape, tile: int, tile_capacity: int,
+                     list_layout: str = "padded", list_memory_capacity: int = 0):
+    """Per-tile lists of the ``lights`` whose screen and depth bounds overlap each tile of an image of
+    ``shape`` (H, W) (static, as ``tile``, ``tile_capacity``, ``list_layout`` and ``list_memory_capacity``);
+    ``tile_depths``: None (no depth culling) or [T, 2] view-depth ranges. Returns ``(lists, counts int32
+    [T])`` as :func:`cull_lights`."""
     centre, radius = light_spheres(lights)
     rect, light_depth = screen_bounds(centre, radius, camera)
-    bounds = tile_depth_bounds(view_depth, coverage, tile=tile) if depth_bounds else None
-    overlap = tile_overlaps(rect, light_depth, bounds, tiles_yx=tile_grid(jnp.shape(coverage), tile=tile), tile=tile)
+    overlap = tile_overlaps(rect, light_depth, tile_depths, tiles_yx=tile_grid(shape, tile=tile), tile=tile)
     return fill_lists(overlap, list_layout=list_layout, capacity=tile_capacity, list_memory_capacity=list_memory_capacity)
 
 
@@ -486,9 +496,10 @@ _TILED_COUNTERS = tuple(c._replace(doc=c.doc + _SINGLE_KERNEL_DOCS.get(c.name, "
 _TILED_CAPACITIES = tuple(c._replace(when=c.when + (("kernel", "multi"),))
                           for c in TILED_CAPACITIES + (LIST_MEMORY_CAPACITY,))
 """The list capacities exist in the multi-kernel form only."""
-TILED_NOTES = ("Missing from Paper I: transparency (far-Z-only culling in a forward pass over blended "
-               "geometry) and MSAA; screen bounds are the projected corners of each sphere's bounding cube, not the "
-               "tight tangent-plane bound of Lengyel / Sigg et al. The single-kernel variant (sec. 7, kernel = "
+TILED_NOTES = ("Missing from Paper I: MSAA; screen bounds are the projected corners of each sphere's bounding "
+               "cube, not the tight tangent-plane bound of Lengyel / Sigg et al. Transparency (sec. 4, far-Z-only "
+               "culling in a forward pass over blended geometry) is translucent_forward with light_lists = 'tiled'. "
+               "The single-kernel variant (sec. 7, kernel = "
                "\"single\") tests the multi kernel's screen rectangles and depth ranges rather than six frustum "
                "planes, and needs no shared-memory atomics: no list is built.")
 TILED_EXAMPLE = {"tile": 8}

@@ -5,7 +5,10 @@ triangle-versus-tile test of GPU Gems 2, ch. 42, Hasselgren, Akenine-Möller and
 homogeneous edge functions of Olano and Greer, "Triangle Scan Conversion using 2D Homogeneous
 Coordinates" (Graphics Hardware 1997), as set out in :mod:`gpupro.raster.setup`.
 
-Per pixel, the nearest covered triangle (depth ties to the lower index), its window depth and the
+Only opaque triangles are drawn: those whose material has opacity < 1 are left out (and counted), so
+that translucent surfaces never hide what lies behind them; ``translucent_layers`` peels them and
+``translucent_forward`` blends them over the shaded image. Per pixel, the nearest covered triangle
+(depth ties to the lower index), its window depth and the
 perspective-correct barycentrics b_i with their exact screen derivatives ∂b_i/∂x, ∂b_i/∂y.
 Capacities bound the work per step only: a tile with more than ``tile_capacity`` triangles takes
 several chunks and more than ``pair_capacity`` candidate pairs take several binning passes, so nothing
@@ -22,7 +25,9 @@ with an error naming ``samples``.
 
 from __future__ import annotations
 
-from gpupro.raster import rasterize_scene, reference
+import jax.numpy as jnp
+
+from gpupro.raster import rasterize_scene, reference, split_faces
 from gpupro.raster.setup import SAMPLE_PATTERNS
 from gpupro.scene.camera import to_clip
 from gpupro.technique import BOOLEAN, Buffer, Capacity, Counter, Option, Technique, integer, one_of, optional, register
@@ -52,14 +57,15 @@ def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_ca
 
 
 def apply_reference(params, inputs, scene, *, samples, cull_backfaces):
-    """Brute-force rasterization (every triangle at every sample) → the same fragment buffers."""
+    """Brute-force rasterization (every opaque triangle at every sample) → the same fragment buffers."""
     camera = scene.camera
     clip = to_clip(scene.mesh.positions, camera.view_projection())
-    fragments = reference(clip, scene.mesh.faces, resolution=camera.resolution, samples=samples,
-                          cull_backfaces=cull_backfaces)
-    return _fragment_buffers(fragments), fragments.counters
+    faces, _, translucent = split_faces(scene.mesh, scene.materials)
+    fragments = reference(clip, faces, resolution=camera.resolution, samples=samples, cull_backfaces=cull_backfaces)
+    return _fragment_buffers(fragments), dict(fragments.counters, translucent_triangles=jnp.sum(translucent, dtype=jnp.int32))
 
 
+TRANSLUCENT_TRIANGLES = Counter("translucent_triangles", "triangles left out for a material opacity < 1 (drawn by translucent_layers)")
 CULL = Option("cull_backfaces", False, BOOLEAN, "drop triangles that are clockwise in NDC (back-facing)")
 SAMPLES = Option("samples", 1, one_of(*SAMPLE_PATTERNS),
                  "samples per pixel (MSAA at D3D's standard positions); above 1 the fragments are [H, W, S(, 3)] "
@@ -94,6 +100,7 @@ register(Technique(
         Counter("pair_overflow", "candidate pairs past pair_capacity in the first binning pass"),
         Counter("nonfinite_triangles", "triangles skipped for NaN or infinite positions"),
         Counter("invalid_faces", "faces skipped for a vertex index outside the mesh"),
+        TRANSLUCENT_TRIANGLES,
     ),
     reference="raster_reference",
 ))
@@ -108,5 +115,5 @@ register(Technique(
     outputs=FRAGMENTS,
     options=(SAMPLES, CULL),
     counters=(Counter("pixel_triangle_tests", "triangles × pixels tested"),
-              Counter("invalid_faces", "faces skipped for a vertex index outside the mesh")),
+              Counter("invalid_faces", "faces skipped for a vertex index outside the mesh"), TRANSLUCENT_TRIANGLES),
 ))
