@@ -96,40 +96,41 @@ def transform_lights(lights: Lights, matrix) -> Lights:
                   range=lights.range, cos_inner=lights.cos_inner, cos_outer=lights.cos_outer, length=lights.length)
 
 
-def _box_residual(x, lower, upper):
-    """x − clamp(x, lower, upper) (broadcast [..., 3]): the offset from a box to points."""
-    return x - jnp.clip(x, lower, upper)
-
-
 def segment_box_distance(lower, upper, position, direction, length):
     """Distance (world units) between segments {p + t a : |t| ≤ ℓ} and axis-aligned boxes, by the exact
     minimisation of the module docstring; for ℓ = 0, Arvo's point–box distance.
 
     ``lower``, ``upper`` [..., 3] box corners; ``position`` p, ``direction`` a (unit) [..., 3];
     ``length`` ℓ [...] ≥ 0; all broadcast together. Returns [...].
+    Written on components, the 8 candidates one after another: everything is elementwise on [...], so
+    XLA fuses the whole test into one loop. As [..., 8] arrays with reductions over the candidates it
+    wrote them to memory (tiled culling of 1,024 lights at 1080p took 2 ms on an H200, 0.7 before capsule
+    lights; 10× slower on the CPU).
     """
-    shape = jnp.broadcast_shapes(lower.shape, upper.shape, position.shape, direction.shape, length.shape + (3,))
-    lower, upper, position, direction = (jnp.broadcast_to(x, shape) for x in (lower, upper, position, direction))
-    length = jnp.broadcast_to(length, shape[:-1])[..., None]
-    moving = direction != 0.0
-    step = jnp.where(moving, direction, 1.0)
+    shape = jnp.broadcast_shapes(lower.shape, upper.shape, position.shape, direction.shape, length.shape + (3,))[:-1]
+    lo, hi, p, a = ([jnp.broadcast_to(x[..., k], shape) for k in range(3)] for x in (lower, upper, position, direction))
+    ell = jnp.broadcast_to(length, shape)
+    residual = lambda x, k: x - jnp.clip(x, lo[k], hi[k])  # the offset from the box, coordinate k
+    slope_of = lambda t: sum(residual(p[k] + t * a[k], k) * a[k] for k in range(3))  # g'(t) / 2
     # Where a coordinate crosses a face (an axis the segment does not move along has none: −ℓ stands in).
-    crossings = jnp.concatenate([jnp.where(moving, (lower - position) / step, -length),
-                                 jnp.where(moving, (upper - position) / step, -length), -length, length], axis=-1)
-    t = jnp.clip(crossings, -length, length)  # [..., 8] candidates, unsorted
-    slope_of = lambda t, p, a, lo, hi: dot3(_box_residual(p + t[..., None] * a, lo, hi), a)  # g'(t) / 2
-    each = lambda x: x[..., None, :]
-    slope = slope_of(t, each(position), each(direction), each(lower), each(upper))
+    candidates = [-ell, ell]
+    for k in range(3):
+        moving = a[k] != 0.0
+        step = jnp.where(moving, a[k], 1.0)
+        candidates += [jnp.where(moving, (lo[k] - p[k]) / step, -ell), jnp.where(moving, (hi[k] - p[k]) / step, -ell)]
     # g' is non-decreasing: the minimiser lies between the last candidate of negative slope and the next one.
-    falling = slope < 0.0
-    t0 = jnp.max(jnp.where(falling, t, -length), axis=-1)
-    t1 = jnp.min(jnp.where(falling, length, t), axis=-1)
-    s0, s1 = (slope_of(t_k, position, direction, lower, upper) for t_k in (t0, t1))
+    t0, t1 = -ell, ell
+    for candidate in candidates:
+        t = jnp.clip(candidate, -ell, ell)
+        falling = slope_of(t) < 0.0
+        t0 = jnp.maximum(t0, jnp.where(falling, t, -ell))
+        t1 = jnp.minimum(t1, jnp.where(falling, ell, t))
+    s0, s1 = slope_of(t0), slope_of(t1)
     rising = (s0 < 0.0) & (s1 >= 0.0)
     fraction = jnp.where(rising, -s0 / jnp.where(rising, s1 - s0, 1.0), jnp.where(s1 < 0.0, 1.0, 0.0))
     best = t0 + fraction * (t1 - t0)
-    gap = _box_residual(position + best[..., None] * direction, lower, upper)
-    return jnp.sqrt(dot3(gap, gap))
+    gap = [residual(p[k] + best * a[k], k) for k in range(3)]
+    return jnp.sqrt(gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2])
 
 
 def _outside_cone(centre, radius, lights: Lights):
