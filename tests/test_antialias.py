@@ -232,6 +232,7 @@ def test_interior_of_a_convex_mesh_is_unchanged():
     assert np.any(antialiased[~inner] != aliased[~inner])
 
 
+@pytest.mark.slow  # about 18 s on the 2-core CPU; the GPU suite runs it
 def test_no_silhouette_means_output_equals_input_exactly():
     rng = np.random.default_rng(5)
     # A jittered quad grid overfilling the view: every pixel covered, only interior edges inside it.

@@ -370,6 +370,7 @@ def test_binned_rendering_equals_every_pixel_meeting_every_particle(blending):
     assert int(counts.tests) < int(counts.steps) * 32 * 32 * 2  # and some step ran on the longest lists' tiles only
 
 
+@pytest.mark.slow  # about 40 s on the 2-core CPU; the GPU suite runs it
 def test_gp_render_grows_the_tile_particle_capacity_to_the_unbinned_image(capsys):
     scene = gp.scenes.sphere(resolution=(24, 24))  # rendered at 12×12: one tile of 12², one compiled width
     make = lambda **options: gp.pipeline_for("clouds", example=True, outputs=("hdr_clouds",), bin_tile=12, **options)

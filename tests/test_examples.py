@@ -5,6 +5,7 @@ import pathlib
 import runpy
 
 import numpy as np
+import pytest
 
 EXPERIMENTS = pathlib.Path(__file__).resolve().parent.parent / "experiments"
 
@@ -36,6 +37,7 @@ def test_notebook_example_runs_and_its_claims_hold(capsys):
     np.testing.assert_allclose(grad, np.round(np.asarray(namespace["grad"]), 5))
 
 
+@pytest.mark.slow  # a whole fit, about 17 s on the 2-core CPU; the GPU suite runs it
 def test_fit_pose_recovers_the_pose_and_field_of_view(capsys, monkeypatch):
     monkeypatch.setattr("sys.argv", ["fit_pose.py"])  # the script's defaults: 48 × 48, 100 Adam steps
     namespace = runpy.run_path(str(EXPERIMENTS / "fit_pose.py"), run_name="__main__")

@@ -60,6 +60,7 @@ def test_objective_equals_the_path_rendered_frame_by_frame(problem):
     assert 0.0 < error < problem.error_scale  # the lawn half drawn: some error, less than the worst corner's
 
 
+@pytest.mark.slow  # about 23 s on the 2-core CPU; the GPU suite runs it
 def test_gradient_agrees_with_central_differences(problem):
     [row] = fit_lod.gradient_check(problem, problem.start, 1.0, 0.01)
     assert np.isfinite(row["analytic"]) and abs(row["analytic"]) > 0.05

@@ -17,6 +17,7 @@ from gpupro.pipeline.capacity import render_without_overflow
 CONFIGS = pathlib.Path(__file__).resolve().parent.parent / "configs" / "media"
 
 
+@pytest.mark.slow  # a whole fit, about 26 s on the 2-core CPU; the GPU suite runs it
 def test_fog_density_and_phase_are_recovered_from_a_render(tmp_path):
     result = fit_experiment(CONFIGS / "fit_fog.toml", out_dir=tmp_path, progress=io.StringIO(),
                             overrides=("camera.resolution='48x27'", "fit.steps=40"))

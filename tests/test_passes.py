@@ -38,6 +38,7 @@ def shadowed_pipeline(count=1):
                        outputs=("hdr", "shadow"))
 
 
+@pytest.mark.slow  # about 17 s on the 2-core CPU; tests/test_shadow_maps.py checks the visibility
 def test_shadows_darken_only_the_shadowed_light(cornell):
     pipeline = shadowed_pipeline()
     out = pipeline(pipeline.init_params(), cornell)

@@ -109,6 +109,7 @@ def polygon_clip(poly, plane):
     return np.array(out)
 
 
+@pytest.mark.slow  # about 20 s on the 2-core CPU; the GPU suite runs it
 def test_near_plane_clipping_matches_explicit_polygon_clipping():
     rng = np.random.default_rng(3)
     near_plane, far_plane = np.array([0, 0, 1, 1.0]), np.array([0, 0, -1, 1.0])
