@@ -210,6 +210,7 @@ def test_forward_matches_the_supersampled_render_on_edge_pixels():
     np.testing.assert_array_equal(np.asarray(antialiased)[~np.asarray(edge)], np.asarray(aliased)[~np.asarray(edge)])
 
 
+@pytest.mark.slow  # about 24 s on the 2-core CPU; the GPU suite runs it
 def test_forward_on_a_closed_mesh_follows_its_surface_to_the_silhouette():
     antialiased, nearest_only, aliased, _, _ = sphere_scene(SPHERE_PARAMS, smooth_weights(3))
     truth, edge = sphere_truth(SPHERE_PARAMS)

@@ -72,6 +72,7 @@ def test_gradient_agrees_with_central_differences(problem):
     assert cost_gradient == pytest.approx((up - down) / (2 * h) / problem.reference_cost, rel=0.02)
 
 
+@pytest.mark.slow  # about 40 s on the 2-core CPU with the problem it compiles; the GPU suite runs it
 def test_fits_lower_the_objective_and_follow_lambda(problem):
     optimizer = fit_lod.optax.sgd(0.05)
     start = float(problem.start[0])

@@ -75,6 +75,7 @@ def test_edges_and_vertices_through_pixel_centres_follow_top_left_rule():
     assert nx > 3 and counts.min() == 1 and counts.max() == 1
 
 
+@pytest.mark.slow  # about 25 s on the 2-core CPU (its own icosphere programs); the grids below check watertightness by default
 def test_closed_mesh_in_perspective_covers_silhouette_once():
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     clip = camera_clip(sphere.vertices, eye=(0.3, 0.2, 2.6))

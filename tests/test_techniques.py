@@ -263,10 +263,11 @@ CAPACITY_SCENE_OPTIONS = {("clustered_deferred", "page_capacity"): {"page_size":
                           ("clustered_forward", "page_capacity"): {"page_size": 256, "normal_bins": 3}}
 """Options that make a capacity fill up on the small test scenes (the Cornell box's keys fit in one
 4096-key page; 256-key pages and 54 normal bins per tile spread them over several)."""
-OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred", "stalker"}
-"""Techniques whose own test files grow their first capacity through ``render`` against brute force
-(tests/test_fptl.py, tests/test_tiled_shading.py), and S.T.A.L.K.E.R., whose one list is filled by the same
-count → scan → fill as tiled shading's: their generic case (15–17 s each) runs with ``-m slow``."""
+OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred", "light_linked_list", "stalker"}
+"""Techniques whose own test files grow their first capacity against brute force (tests/test_fptl.py,
+tests/test_tiled_shading.py, tests/test_light_linked_list.py's ten thousand lights), and S.T.A.L.K.E.R.,
+whose one list is filled by the same count → scan → fill as tiled shading's: their generic case (15–24 s
+each) runs with ``-m slow``."""
 
 
 @pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES | OWN_CAPACITY_TESTS | TRANSLUCENT), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])
