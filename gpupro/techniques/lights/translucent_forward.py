@@ -64,7 +64,7 @@ from gpupro.techniques.lights.clustered import CLUSTERED_CAPACITIES, CLUSTERED_C
 from gpupro.techniques.lights.deferred import LIGHT_LOOP_OPTION, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS
 from gpupro.techniques.lights.light_linked_list import (LLL_CAPACITIES, LLL_COUNTERS, LLL_OPTIONS, build_light_linked_list,
                                                         downsample_max_depth, shade_image_samples)
-from gpupro.techniques.lights.tiled import (LIST_LAYOUT_OPTIONS, LIST_MEMORY_CAPACITY, TILED_CAPACITIES, TILED_COUNTERS,
+from gpupro.techniques.lights.tiled import (LIST_MEMORY_CAPACITY, TILED_CAPACITIES, TILED_COUNTERS,
                                             TILED_OPTIONS, list_counters, list_memory_counters, shade_light_lists,
                                             tile_grid, tile_light_lists)
 from gpupro.techniques.raster.gbuffer import SURFACE
@@ -238,7 +238,7 @@ OPTIONS = (Option("light_lists", "tiled", one_of(*LIGHT_LISTS),
                    "depth walked with each sample's depth bounds)"),) + _unique(
     tuple(o._replace(doc="tiled: cull lights outside each tile's [near, farthest opaque view depth]")
           if o.name == "depth_bounds" else o for o in TILED_OPTIONS if o.name != "kernel")
-    + LIST_LAYOUT_OPTIONS + CLUSTERED_OPTIONS + LLL_OPTIONS)
+    + CLUSTERED_OPTIONS + LLL_OPTIONS)  # CLUSTERED_OPTIONS end with the list layout's
 # The packed layout's list memory serves tiled and clustered lists alike (its counters are 0 otherwise).
 CAPACITIES = (_when(TILED_CAPACITIES, "tiled")
               + _when(tuple(c for c in CLUSTERED_CAPACITIES if c is not LIST_MEMORY_CAPACITY), "clustered")
