@@ -260,7 +260,8 @@ FURTHER_CAPACITIES = {(t.id, c) for t in TECHNIQUES.values() for c in t.capaciti
 """A technique's capacities after its first: their growth goes through the same entry points as the
 first's, so the default suite grows one capacity per technique and ``-m slow`` the rest."""
 CAPACITY_SCENE_OPTIONS = {("clustered_deferred", "page_capacity"): {"page_size": 256, "normal_bins": 3},
-                          ("clustered_forward", "page_capacity"): {"page_size": 256, "normal_bins": 3}}
+                          ("clustered_forward", "page_capacity"): {"page_size": 256, "normal_bins": 3},
+                          ("translucent_forward", "page_capacity"): {"page_size": 256, "normal_bins": 3}}
 """Options that make a capacity fill up on the small test scenes (the Cornell box's keys fit in one
 4096-key page; 256-key pages and 54 normal bins per tile spread them over several)."""
 OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred", "light_linked_list", "stalker"}
