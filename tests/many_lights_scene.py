@@ -3,6 +3,7 @@
 import numpy as np
 
 import gpupro as gp
+from gpupro.pipeline.capacity import render_without_overflow
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS
@@ -53,16 +54,18 @@ def assert_same(fast, slow):
     np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-4 * max(float(np.abs(slow).max()), 1e-6))
 
 
-def assert_capacity_grown_to_brute_force(technique_id, lights):
-    """With 2 list slots per 16-pixel tile the lists overflow and say so; ``gp.render`` grows the capacity
-    and the image equals brute-force deferred shading."""
+def assert_capacity_grown_to_brute_force(technique_id, lights, *, option="tile_capacity", small=2, **options):
+    """With ``option`` forced down to ``small`` (default: 2 list slots per tile) the lists overflow, the
+    entry points' growth loop reads the overflow, grows the capacity and renders again, and the image
+    equals brute-force deferred shading (``options``: further pass options, e.g. ``tile=16``)."""
     scene = SCENE.replace(lights=lights)
-    small = gp.pipeline_for(technique_id, outputs=("hdr",), tile=16, tile_capacity=2)
-    frame = small(small.init_params(), scene)
-    assert int(frame["counters"][technique_id]["tile_list_overflow"]) > 0
-    grown = gp.render(scene, small, outputs=("hdr",), quiet=True)
+    small_pipeline = gp.pipeline_for(technique_id, outputs=("hdr",), **options, **{option: small})
+    said = []
+    used, grown = render_without_overflow(small_pipeline, lambda p: p(p.init_params(), scene, outputs=("hdr",)),
+                                          say=said.append)
+    assert said and all(line.startswith(f"{technique_id}: ") for line in said), "the overflow is reported"
+    assert used[technique_id].options[option] > small
     reference = gp.render(scene, gp.pipeline_for("deferred", outputs=("hdr",)), outputs=("hdr",), quiet=True)
-    assert int(grown["counters"][technique_id]["tile_list_overflow"]) == 0
     assert_same(np.asarray(grown["hdr"]), np.asarray(reference["hdr"]))
 
 

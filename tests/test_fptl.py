@@ -90,6 +90,5 @@ def test_fine_pruning_evaluates_fewer_lights_than_tiled_deferred():
     assert int(pruned["lights_pruned"]) > 0
 
 
-@pytest.mark.slow  # the generic capacity test (tests/test_techniques.py) checks fptl's growth in the default run
 def test_forced_small_capacity_is_grown_by_render():
-    assert_capacity_grown_to_brute_force("fptl", LIGHTS["hundred"])
+    assert_capacity_grown_to_brute_force("fptl", LIGHTS["hundred"], tile=16)

@@ -17,7 +17,8 @@ from gpupro.techniques.lights.stalker import (
 )
 from gpupro.techniques.lights.tiled import screen_bounds
 from many_lights_scene import (
-    CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights, ten_thousand_lights,
+    CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights,
+    ten_thousand_lights,
 )
 
 ANALYTIC = dict(material_model="analytic", lut_n_dot_l=64, lut_n_dot_h=256, lut_layers=4, lut_min_roughness=0.4)
@@ -90,6 +91,10 @@ def test_ten_thousand_lights_equal_brute_force():
     slow, _ = brute(GBUFFER, lights, CAMERA.eye, **{**OPTIONS, "light_chunk": 64})
     assert_same(np.asarray(fast), np.asarray(slow))
     assert int(counters["light_list_overflow"]) == 0 and int(counters["surviving_lights"]) < lights.count
+
+
+def test_forced_small_capacity_is_grown_by_render():
+    assert_capacity_grown_to_brute_force("stalker", LIGHTS["hundred"], option="light_capacity", small=4)
 
 
 def test_each_stage_culls_only_lights_that_reach_no_covered_pixel():

@@ -265,9 +265,9 @@ CAPACITY_SCENE_OPTIONS = {("clustered_deferred", "page_capacity"): {"page_size":
 """Options that make a capacity fill up on the small test scenes (the Cornell box's keys fit in one
 4096-key page; 256-key pages and 54 normal bins per tile spread them over several)."""
 OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred", "light_linked_list", "stalker"}
-"""Techniques whose own test files grow their first capacity against brute force (tests/test_fptl.py,
-tests/test_tiled_shading.py, tests/test_light_linked_list.py's ten thousand lights), and S.T.A.L.K.E.R.,
-whose one list is filled by the same count → scan → fill as tiled shading's: their generic case (15–24 s
+"""Techniques whose own test files grow their first capacity against brute force in the default run
+(``test_forced_small_capacity_is_grown_by_render`` in tests/test_fptl.py, tests/test_tiled_shading.py and
+tests/test_stalker.py; tests/test_light_linked_list.py's ten thousand lights): their generic case (15–24 s
 each) runs with ``-m slow``."""
 
 

@@ -54,9 +54,8 @@ def test_small_lights_cost_fewer_lighting_computations_with_depth_bounds():
     assert float(with_depth["false_positive_rate"]) < float(without["false_positive_rate"])
 
 
-@pytest.mark.slow  # the generic capacity test (tests/test_techniques.py) checks tiled_deferred's growth in the default run
 def test_forced_small_capacity_is_grown_by_render():
-    assert_capacity_grown_to_brute_force("tiled_deferred", LIGHTS["hundred"])
+    assert_capacity_grown_to_brute_force("tiled_deferred", LIGHTS["hundred"], tile=16)
 
 
 def narrow_spots(kind):
