@@ -35,6 +35,7 @@ from gpupro.shading.light_bounds import (
     light_boxes,
     light_spheres,
     segment_box_distance,
+    sphere_meets_cones,
     sphere_meets_light,
     transform_lights,
 )

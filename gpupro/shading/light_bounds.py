@@ -145,6 +145,16 @@ def _outside_cone(centre, radius, lights: Lights):
     return (along < -widened) | (across * cos_outer - along * sin_outer > widened)
 
 
+def sphere_meets_cones(centre, radius, lights: Lights):
+    """bool [M, N]: False only where a spot's infinite cone (or the half-space before its apex) certainly
+    misses the sphere (``centre`` [M, 3], ``radius`` [M], in the lights' space and units); True for every
+    other kind. The cone half of :func:`sphere_meets_light`, for volumes already tested against the
+    lights' bounding spheres."""
+    centre = jnp.asarray(centre, jnp.float32)
+    radius = jnp.asarray(radius, jnp.float32)
+    return (lights.kind != SPOT)[None] | ~_outside_cone(centre, radius, lights)
+
+
 def sphere_meets_light(centre, radius, lights: Lights):
     """Whether each of M spheres may meet each of N lights' influence: bool [M, N].
 

@@ -36,12 +36,15 @@ t × t pixels (T = ⌈W/t⌉ · ⌈H/t⌉ tiles: 120 × 68 at 1920 × 1080 with 
    The spheres are :func:`gpupro.shading.light_bounds.light_spheres` (range sphere of a point light,
    smallest axis-centred sphere of a spot's sector, radius ℓ + r around a capsule's centre). Spots are
    then culled as cones and capsules as capsules as well, which the chapter does not do: "planes"
-   tests the cone or capsule against the bounding sphere of the partition's corners
+   tests the cone or capsule against the bounding sphere of the volume's corners
    (:func:`~gpupro.shading.light_bounds.sphere_meets_light`), "aabb" against the box
    (:func:`~gpupro.shading.light_bounds.box_meets_light`). With two partitions a light is listed in
-   partition k only if it also passes the whole tile's [z_min, z_max] test: the cone tests on bounding
-   spheres are not monotone in the volume, and this keeps each partition's list a subset of the
-   unpartitioned one. Every comparison is widened by ``SLACK`` so boundary samples survive rounding.
+   partition k only if it passes the whole tile's [z_min, z_max] volume with these shape tests and
+   partition k with its bounding sphere and (spots) the cone test on the partition's bounding sphere
+   (:func:`~gpupro.shading.light_bounds.sphere_meets_cones`). So each partition's list is a subset of
+   the unpartitioned one (the cone tests on bounding spheres are not monotone in the volume), and the
+   exact capsule–box search, the costliest test per pair, runs once per tile rather than three times.
+   Every comparison is widened by ``SLACK`` so boundary samples survive rounding.
 4. Lists: count → scan → fill (:func:`gpupro.techniques.lights.tiled.fill_light_lists`) into a fixed
    [T, P, C] array, C = min(``tile_capacity``, N) (the chapter: 256 per tile); the excess is dropped and
    counted (``tile_list_overflow``), and the entry points grow C to ``max_lights_per_tile``.
@@ -83,7 +86,9 @@ import jax.numpy as jnp
 from gpupro.numerics import einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
-from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, sphere_meets_light, transform_lights
+from gpupro.shading.light_bounds import (
+    SLACK, box_meets_light, light_spheres, sphere_meets_cones, sphere_meets_light, transform_lights,
+)
 from gpupro.technique import Check, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
@@ -241,25 +246,27 @@ def box_hits(lower, upper, centre, radius):
     return gap < _widened(radius, gap)
 
 
-def volume_hits(normal, offset, corners, depth_ranges, centre, radius, view_lights: Lights, *, bounds: str):
+def volume_hits(normal, offset, corners, depth_ranges, centre, radius, view_lights: Lights, *, bounds: str,
+                shapes: bool = True):
     """Which lights may reach each tile partition: bool [T, V, N] for V volumes per tile.
 
     ``normal``, ``offset`` the side planes; ``corners`` [T, V, 8, 3] and ``depth_ranges`` [T, V, 2] of
     the volumes; ``centre``, ``radius`` the lights' bounding spheres and ``view_lights`` the lights, in
-    view space; ``bounds`` (static) "planes" or "aabb". Spots are tested as cones and capsules as
-    capsules too.
+    view space; ``bounds`` (static) "planes" or "aabb". With ``shapes`` (static) spots are tested as
+    cones and capsules as capsules too; without, the bounding spheres and the spots' cones only.
     """
     n_tiles, n_volumes = depth_ranges.shape[:2]
     flat = corners.reshape(-1, 8, 3)
     pad = SLACK * jnp.max(jnp.abs(flat), axis=(1, 2))[:, None]  # corners' rounding
+    middle = jnp.mean(flat, axis=1)
+    extent = jnp.max(jnp.linalg.norm(flat - middle[:, None], axis=-1), axis=1) + pad[:, 0]
     if bounds == "aabb":
         lower, upper = jnp.min(flat, axis=1) - pad, jnp.max(flat, axis=1) + pad
-        hits = box_hits(lower, upper, centre, radius) & box_meets_light(lower, upper, view_lights)
+        hits = box_hits(lower, upper, centre, radius)
+        hits &= box_meets_light(lower, upper, view_lights) if shapes else sphere_meets_cones(middle, extent, view_lights)
     else:
-        middle = jnp.mean(flat, axis=1)
-        extent = jnp.max(jnp.linalg.norm(flat - middle[:, None], axis=-1), axis=1) + pad[:, 0]
-        in_planes = plane_hits(normal, offset, depth_ranges, centre, radius).reshape(n_tiles * n_volumes, -1)
-        hits = in_planes & sphere_meets_light(middle, extent, view_lights)
+        hits = plane_hits(normal, offset, depth_ranges, centre, radius).reshape(n_tiles * n_volumes, -1)
+        hits &= sphere_meets_light(middle, extent, view_lights) if shapes else sphere_meets_cones(middle, extent, view_lights)
     nonempty = (depth_ranges[..., 0] <= depth_ranges[..., 1]).reshape(-1, 1)
     return (hits & nonempty).reshape(n_tiles, n_volumes, -1)
 
@@ -296,17 +303,17 @@ def cull_tiles(lights: Lights, camera: Camera, view_depth, coverage, *, tile: in
     shape = jnp.shape(coverage)
     depth_ranges = tile_depth_partitions(view_depth, coverage, tile=tile, depth_partition=depth_partition,
                                          depth_reduction=depth_reduction)
-    volumes = depth_ranges
-    if depth_ranges.shape[1] > 1:  # the whole tile as a third volume (module docstring, step 3)
-        whole = jnp.stack([depth_ranges[:, 0, 0], depth_ranges[:, -1, 1]], axis=1)[:, None]
-        volumes = jnp.concatenate([depth_ranges, whole], axis=1)
     base, slope = tile_corner_rays(camera, tiles_yx=tile_grid(shape, tile=tile), tile=tile)
     normal, offset = side_planes(base, slope)
     centre, radius, view_lights = culling_inputs(lights, camera, light_buffer=light_buffer)
-    hits = volume_hits(normal, offset, partition_corners(base, slope, volumes), volumes, centre, radius,
-                       view_lights, bounds=bounds)
+    hits = lambda volumes, shapes: volume_hits(normal, offset, partition_corners(base, slope, volumes), volumes,
+                                               centre, radius, view_lights, bounds=bounds, shapes=shapes)
     n_partitions = depth_ranges.shape[1]
-    overlap = hits[:, :n_partitions] & hits[:, n_partitions:] if n_partitions > 1 else hits
+    if n_partitions > 1:  # the whole tile's volume with the lights' shapes, the partitions' with spheres and cones
+        whole = jnp.stack([depth_ranges[:, 0, 0], depth_ranges[:, -1, 1]], axis=1)[:, None]
+        overlap = hits(depth_ranges, False) & hits(whole, True)
+    else:
+        overlap = hits(depth_ranges, True)
     n_tiles, capacity = depth_ranges.shape[0], min(tile_capacity, lights.count)
     lists, counts = fill_light_lists(overlap.reshape(n_tiles * n_partitions, lights.count), capacity)
     return CulledTiles(lists.reshape(n_tiles, n_partitions, capacity), counts.reshape(n_tiles, n_partitions),
