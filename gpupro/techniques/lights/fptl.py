@@ -64,8 +64,13 @@ def prune_light_lists(lists, lights: Lights, points, covered, *, light_chunk: in
 
     ``lists`` int32 [T, C] light indices (−1 in empty slots); ``lights`` N lights; ``points`` [T, Q, 3]
     world positions of each tile's Q pixels; ``covered`` bool [T, Q]; ``light_chunk`` (static) list slots
-    tested per step (None: :func:`default_light_chunk`; peak intermediate [T·Q, chunk, 3]).
+    tested per work item (None: :func:`default_light_chunk`).
     Returns bool [T, C] (False in empty slots).
+
+    Each tile's list is cut into items of ``light_chunk`` slots, up to its last entry only, and T items
+    are tested a step (peak intermediate [T, Q, chunk]): the work follows the lists' own lengths rather
+    than the longest (on the H200 at 1080p with 1,024 lights the coarse lists held 101 lights on average
+    and 254 at most, and pruning every tile to the longest took 4.8 ms).
     """
     n_tiles, capacity = lists.shape
     if capacity == 0:
@@ -73,7 +78,12 @@ def prune_light_lists(lists, lights: Lights, points, covered, *, light_chunk: in
     chunk = min(light_chunk or default_light_chunk(), capacity)
     n_chunks = -(-capacity // chunk)
     padded = jnp.pad(lists, [(0, 0), (0, n_chunks * chunk - capacity)], constant_values=-1)
-    slots = padded.reshape(n_tiles, n_chunks, chunk).transpose(1, 0, 2)  # [n_chunks, T, chunk]
+    length = jnp.max(jnp.where(padded >= 0, jnp.arange(1, n_chunks * chunk + 1), 0), axis=1)  # past the last entry
+    items = -(-length // chunk)
+    item_end = jnp.cumsum(items)
+    item_start = item_end - items
+    total = item_end[-1]
+    lane = jnp.arange(chunk)
 
     def tile_hits(tile_points, tile_covered, indices):
         """One tile's Q samples and ``chunk`` listed lights → bool [chunk]."""
@@ -81,8 +91,19 @@ def prune_light_lists(lists, lights: Lights, points, covered, *, light_chunk: in
         inside = light_reaches(tile_lights, tile_points) & tile_covered[:, None]
         return jnp.any(inside, axis=0) & (indices >= 0)
 
-    hits = jax.lax.map(lambda indices: jax.vmap(tile_hits)(points, covered, indices), slots)
-    return hits.transpose(1, 0, 2).reshape(n_tiles, n_chunks * chunk)[:, :capacity]
+    def step(state):
+        head, kept = state
+        g = head + jnp.arange(n_tiles, dtype=item_end.dtype)
+        live = g < total
+        t = jnp.minimum(jnp.searchsorted(item_end, g, side="right", method="scan_unrolled"), n_tiles - 1)
+        slot = ((g - item_start[t]) * chunk)[:, None] + lane  # [T, chunk]
+        indices = jnp.where(live[:, None], padded[t[:, None], slot], -1)
+        hits = jax.vmap(tile_hits)(points[t], covered[t], indices)
+        return head + n_tiles, kept.at[jnp.where(live, t, n_tiles)[:, None], slot].set(hits, mode="drop")
+
+    kept = jnp.zeros(padded.shape, bool)
+    _, kept = jax.lax.while_loop(lambda state: state[0] < total, step, (jnp.zeros((), item_end.dtype), kept))
+    return kept[:, :capacity]
 
 
 def sort_by_type(lists, kept, kind):
