@@ -6,7 +6,9 @@ import numpy as np
 
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
 from gpupro.scene.camera import look_at
-from gpupro.shading import box_meets_light, light_reaches, light_spheres, sphere_meets_light, transform_lights
+from gpupro.shading import (
+    box_meets_light, light_reaches, light_spheres, sphere_meets_cones, sphere_meets_light, transform_lights,
+)
 
 rng = np.random.default_rng(3)
 N = 40
@@ -47,6 +49,11 @@ def test_boxes_and_spheres_keep_every_light_that_reaches_a_sample_and_cull_cones
     assert boxes[:, np.asarray(LIGHTS.kind) == DIRECTIONAL].all()
     point = np.asarray(LIGHTS.kind) == POINT
     assert (boxes[:, point] == truth[:, point]).mean() > 0.97, "Arvo's test is exact for point lights"
+    # The cone half alone: never culls a reached box's bounding sphere, culls only spots, and culls some.
+    cones = np.asarray(sphere_meets_cones(centre, np.linalg.norm(half, axis=1), LIGHTS))
+    assert not (truth & ~cones).any(), "a culled cone reaches a sample"
+    assert cones[:, ~spot].all() and not cones[:, spot].all()
+    assert (spheres == (spheres & cones)).all(), "sphere_meets_light includes the cone test"
 
 
 def test_tests_agree_in_view_space():
