@@ -68,7 +68,7 @@ def _clustered_stages(inputs, scene, options):
         view_normal = clustered.to_view(camera, inputs["normal"], vectors=True)
         return clustered.build_clusters(view_position, view_normal, inputs["coverage"], camera, **cluster_options)[0]
 
-    found = jax.jit(clusters_of)(inputs, scene.camera)
+    found = jax.jit(lambda *args: clusters_of(*args))(inputs, scene.camera)  # its own program: the timed one compiles afresh
     assign = lambda lights, camera, found: clustered.assign_lights(lights, camera, found, **assign_options)
     return {"clustering": (jax.jit(clusters_of), (inputs, scene.camera)),
             "light assignment": (jax.jit(assign), (scene.lights, scene.camera, found))}
@@ -96,7 +96,24 @@ def _culling_stages(inputs, scene, options):
     return {"culling": (jax.jit(cull), (scene.lights, scene.camera, inputs["view_depth"], inputs["coverage"]))}
 
 
-STAGES = {"clustered_deferred": _clustered_stages, "tiled_deferred": _tiled_stages, "tiled_culling": _culling_stages}
+def _fptl_stages(inputs, scene, options):
+    """FPTL's coarse lists (tiled culling with depth bounds) and its fine pruning with the sort by type."""
+    from gpupro.techniques.lights import fptl
+    from gpupro.techniques.lights.tiled import cull_lights, to_tiles
+
+    tile, chunk = options["tile"], options["light_chunk"]
+    coarse = lambda lights, camera, depth, coverage: cull_lights(lights, camera, depth, coverage, tile=tile,
+                                                                 tile_capacity=options["tile_capacity"], depth_bounds=True)[0]
+    lists = jax.jit(lambda *args: coarse(*args))(scene.lights, scene.camera, inputs["view_depth"], inputs["coverage"])
+    points, covered = to_tiles(inputs["position"], tile=tile), to_tiles(inputs["coverage"] > 0, tile=tile)
+    prune = lambda lists, lights, points, covered: fptl.sort_by_type(
+        lists, fptl.prune_light_lists(lists, lights, points, covered, light_chunk=chunk), lights.kind)
+    return {"coarse lists": (jax.jit(coarse), (scene.lights, scene.camera, inputs["view_depth"], inputs["coverage"])),
+            "fine pruning": (jax.jit(prune), (lists, scene.lights, points, covered))}
+
+
+STAGES = {"clustered_deferred": _clustered_stages, "tiled_deferred": _tiled_stages, "tiled_culling": _culling_stages,
+          "fptl": _fptl_stages}
 """Techniques whose stages are timed apart: id → f(pass inputs, scene, options) → {stage: (jitted fn, args)}."""
 
 

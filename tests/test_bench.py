@@ -1,12 +1,15 @@
-"""Benchmark helpers and the rasterizer benchmark script, end to end on a tiny case."""
+"""Benchmark helpers and the rasterizer and many-light benchmark scripts, end to end on tiny cases."""
 
+import json
 import os
 import pathlib
+import runpy
 import subprocess
 import sys
 
 import jax
 import jax.numpy as jnp
+import pytest
 
 from gpupro.bench import device_info, peak_memory_bytes, time_function
 
@@ -38,3 +41,18 @@ def test_bench_raster_script_runs():
     assert "median ms" in run.stdout and "OpenGL: skipped" in run.stdout
     row = [line for line in run.stdout.splitlines() if line.split()[:2] == ["200", "32x32"]]
     assert len(row) == 1
+
+
+@pytest.mark.slow  # 22 s on the 2-core CPU (the atrium's G-buffer and two passes compile); the GPU suite runs it
+def test_bench_lights_times_the_pass_and_its_stages(tmp_path):
+    bench = runpy.run_path(str(ROOT / "experiments" / "bench_lights.py"))  # not as __main__: defines main only
+    out = tmp_path / "lights.json"
+    results = bench["main"](["--techniques", "deferred,fptl", "--lights", "4", "--resolution", "32x32", "--repeats", "1",
+                             "--json", str(out)])
+    brute, fptl = results
+    assert (brute["technique"], fptl["technique"]) == ("deferred", "fptl") and brute["stages"] == {}
+    assert set(fptl["stages"]) == {"coarse lists", "fine pruning"}
+    assert all(stage["run_ms_median"] > 0 for stage in fptl["stages"].values())
+    assert 0 < fptl["counters"]["lighting_computations"] <= brute["counters"]["lighting_computations"]
+    assert fptl["vs_deferred"] == brute["run_ms_median"] / fptl["run_ms_median"]
+    assert json.loads(out.read_text())["results"][1]["stages"].keys() == fptl["stages"].keys()
