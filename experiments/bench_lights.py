@@ -99,17 +99,15 @@ def _culling_stages(inputs, scene, options):
 def _fptl_stages(inputs, scene, options):
     """FPTL's coarse lists (tiled culling with depth bounds) and its fine pruning with the sort by type."""
     from gpupro.techniques.lights import fptl
-    from gpupro.techniques.lights.tiled import cull_lights, to_tiles
+    from gpupro.techniques.lights.tiled import cull_lights
 
-    tile, chunk = options["tile"], options["light_chunk"]
-    coarse = lambda lights, camera, depth, coverage: cull_lights(lights, camera, depth, coverage, tile=tile,
+    coarse = lambda lights, camera, depth, coverage: cull_lights(lights, camera, depth, coverage, tile=options["tile"],
                                                                  tile_capacity=options["tile_capacity"], depth_bounds=True)[0]
     lists = jax.jit(lambda *args: coarse(*args))(scene.lights, scene.camera, inputs["view_depth"], inputs["coverage"])
-    points, covered = to_tiles(inputs["position"], tile=tile), to_tiles(inputs["coverage"] > 0, tile=tile)
-    prune = lambda lists, lights, points, covered: fptl.sort_by_type(
-        lists, fptl.prune_light_lists(lists, lights, points, covered, light_chunk=chunk), lights.kind)
+    prune = lambda lists, lights, position, coverage: fptl.prune_and_sort(lists, lights, position, coverage,
+                                                                          tile=options["tile"], light_chunk=options["light_chunk"])
     return {"coarse lists": (jax.jit(coarse), (scene.lights, scene.camera, inputs["view_depth"], inputs["coverage"])),
-            "fine pruning": (jax.jit(prune), (lists, scene.lights, points, covered))}
+            "fine pruning": (jax.jit(prune), (lists, scene.lights, inputs["position"], inputs["coverage"]))}
 
 
 STAGES = {"clustered_deferred": _clustered_stages, "tiled_deferred": _tiled_stages, "tiled_culling": _culling_stages,

@@ -133,11 +133,18 @@ def build_light_lists(lights: Lights, camera: Camera, position, view_depth, cove
     """
     coarse_lists, counts = cull_lights(lights, camera, view_depth, coverage, tile=tile,
                                        tile_capacity=tile_capacity, depth_bounds=True)
+    lists, type_counts = prune_and_sort(coarse_lists, lights, position, coverage, tile=tile, light_chunk=light_chunk)
+    return lists, type_counts, jnp.minimum(counts, coarse_lists.shape[1]), counts
+
+
+def prune_and_sort(coarse_lists, lights: Lights, position, coverage, *, tile: int, light_chunk: int | None):
+    """Steps 2–3 of the module docstring on coarse lists int32 [T, C] (from step 1): ``(lists int32 [T, C],
+    type_counts int32 [T, 4])`` as :func:`build_light_lists`. ``position`` [H, W, 3] world positions,
+    ``coverage`` [H, W]; static: ``tile`` pixels, ``light_chunk`` slots pruned per step."""
     points = to_tiles(jnp.asarray(position, jnp.float32), tile=tile)
     covered = to_tiles(jnp.asarray(coverage) > 0, tile=tile)
     kept = prune_light_lists(coarse_lists, lights, points, covered, light_chunk=light_chunk)
-    lists, type_counts = sort_by_type(coarse_lists, kept, lights.kind)
-    return lists, type_counts, jnp.minimum(counts, coarse_lists.shape[1]), counts
+    return sort_by_type(coarse_lists, kept, lights.kind)
 
 
 def shade_fptl(surface: dict, view_depth, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
