@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 
 from gpupro.scene import CAPSULE, POINT, SPOT, make_lights, no_lights
+from gpupro.scene.lights import concatenate_lights
 from gpupro.shading import light_reaches
+from gpupro.shading.light_kernel import tile_list_hits
 from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, shade_fptl
-from gpupro.techniques.lights.tiled import shade_tiled, to_tiles
+from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, prune_light_lists, shade_fptl
+from gpupro.techniques.lights.tiled import cull_lights, shade_tiled, to_tiles
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 TILE = 16
@@ -92,3 +94,19 @@ def test_fine_pruning_evaluates_fewer_lights_than_tiled_deferred():
 
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("fptl", LIGHTS["hundred"], tile=16)
+
+
+def test_pruning_kernel_equals_the_xla_loop():
+    """The GPU path of fine pruning (one Pallas program per tile; interpreted off GPUs) against the XLA loop,
+    on the hundred lights and capsules (tiles of 16: 9 tiles, lists up to 64 slots)."""
+    lights = concatenate_lights([LIGHTS["hundred"], make_lights(
+        [CAPSULE, CAPSULE], position=[(2.8, 1.0, 2.8), (1.0, 4.0, 4.0)], direction=[(1, 0, 0), (0, 0, 1)],
+        range=[0.4, 0.6], length=[1.5, 0.8])])
+    lists, _ = cull_lights(lights, CAMERA, GBUFFER["view_depth"], GBUFFER["coverage"], tile=16, tile_capacity=64,
+                           depth_bounds=True)
+    points = to_tiles(jnp.asarray(GBUFFER["position"]), tile=16)
+    covered = to_tiles(jnp.asarray(GBUFFER["coverage"]) > 0, tile=16)
+    loop = np.asarray(prune_light_lists(lists, lights, points, covered, light_chunk=8))
+    kernel = np.asarray(tile_list_hits(points, covered, lists, lights, interpret=jax.default_backend() != "gpu"))
+    np.testing.assert_array_equal(kernel, loop)
+    assert 0 < loop.sum() < int(np.sum(np.asarray(lists) >= 0)), "some listed lights pruned, some kept"

@@ -402,3 +402,51 @@ def block_light_lists(points, lights: Lights, *, block_pixels: int = BLOCK_PIXEL
     lists = jnp.full(hit.shape, -1, jnp.int32).at[block, slot].set(
         jnp.broadcast_to(jnp.arange(lights.count, dtype=jnp.int32), hit.shape), mode="drop")
     return lists, jnp.arange(n_points, dtype=jnp.int32) // block_pixels
+
+
+def _prune_kernel(*refs, n_slots: int):
+    x_ref, y_ref, z_ref, covered_ref, list_ref = refs[:5]
+    light_refs, out_ref = refs[5:-1], refs[-1]
+    point = (x_ref[...], y_ref[...], z_ref[...])  # [Q] blocks: one tile's samples
+    covered = covered_ref[...] > 0
+    lane = jnp.arange(n_slots, dtype=jnp.int32)
+    length = jnp.max(jnp.where(list_ref[...] >= 0, lane + 1, 0))  # past the list's last entry
+
+    def step(j, kept):
+        index = jnp.maximum(list_ref[jnp.full(covered.shape, j, jnp.int32)], 0)  # slot j's light, in every lane
+        light = _light_of([r[index] for r in light_refs])
+        hit = jnp.max(jnp.where(_reaches(point, light) & covered, 1, 0))
+        return jnp.where(lane == j, hit, kept)
+
+    out_ref[...] = jax.lax.fori_loop(0, length, step, jnp.zeros((n_slots,), jnp.int32))
+
+
+def tile_list_hits(points, covered, lists, lights: Lights, *, interpret: bool = False):
+    """Whether each listed light truly reaches a covered sample of its tile, one kernel program per tile:
+    the fast form of FPTL's fine pruning (:func:`gpupro.techniques.lights.fptl.prune_light_lists`).
+
+    ``points`` [T, Q, 3] world positions of each tile's samples; ``covered`` bool [T, Q]; ``lists`` int32
+    [T, C] light indices (−1 in empty slots); ``lights`` N lights. Each program keeps its tile's samples
+    in registers and walks its own list to its last entry, testing each light with
+    :func:`gpupro.shading.light_loop.light_reaches`' arithmetic on components. ``interpret``: Pallas'
+    interpreter (any backend). Returns bool [T, C] (False in empty slots). Not differentiable (a test).
+    """
+    n_tiles, n_samples = covered.shape
+    capacity = lists.shape[1]
+    width, slots = _power_of_two_at_least(n_samples), _power_of_two_at_least(max(capacity, 1))
+    by_sample = lambda x, fill: jnp.pad(x, [(0, 0), (0, width - n_samples)], constant_values=fill).reshape(-1)
+    point_arrays = [by_sample(jnp.asarray(points[..., k], jnp.float32), 0.0) for k in range(3)]
+    point_arrays.append(by_sample(jnp.asarray(covered, jnp.int32), 0))
+    padded_lists = jnp.pad(jnp.asarray(lists, jnp.int32), [(0, 0), (0, slots - capacity)], constant_values=-1).reshape(-1)
+    light_arrays = _light_arrays(lights)
+    whole = lambda a: pl.BlockSpec(a.shape, lambda t: (0,))
+    hits = pl.pallas_call(
+        functools.partial(_prune_kernel, n_slots=slots),
+        out_shape=jax.ShapeDtypeStruct((n_tiles * slots,), jnp.int32),
+        grid=(n_tiles,),
+        in_specs=[pl.BlockSpec((width,), lambda t: (t,))] * 4 + [pl.BlockSpec((slots,), lambda t: (t,))]
+        + [whole(a) for a in light_arrays],
+        out_specs=pl.BlockSpec((slots,), lambda t: (t,)),
+        interpret=interpret,
+    )(*point_arrays, padded_lists, *light_arrays)
+    return (hits.reshape(n_tiles, slots)[:, :capacity] > 0) & (lists >= 0)

@@ -17,7 +17,9 @@ Steps, per tile τ of t × t pixels (T = ⌈H/t⌉ · ⌈W/t⌉) with covered sa
    extent [d_c − R, d_c + R] overlaps the tile's [z_min, z_max]; count → scan → fill into
    C = min(``tile_capacity``, N) slots, the excess dropped and counted (``tile_list_overflow``; entry
    points grow C to ``max_lights_per_tile``);
-2. fine pruning: keep listed light i only if  ∃ x ∈ S_τ : reaches_i(x), with the light's true volume
+2. fine pruning (on GPUs one kernel program per tile, :func:`gpupro.shading.light_kernel.tile_list_hits`,
+   which keeps the tile's samples in registers and walks its list to its own length; elsewhere the XLA
+   loop of :func:`prune_light_lists`): keep listed light i only if  ∃ x ∈ S_τ : reaches_i(x), with the light's true volume
        point:  |x − p_i| < r_i;   spot:  |x − p_i| < r_i  and  (x − p_i)·a_i > cos θ_i · |x − p_i|;
        capsule:  |x − q_i(x)| < r_i,  q_i(x) = p_i + clamp((x − p_i)·a_i, −ℓ_i, ℓ_i) a_i  (the true capsule,
                  not its bounding sphere: a capsule whose sphere covers samples of τ that the capsule
@@ -46,6 +48,7 @@ import jax.numpy as jnp
 
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import CAPSULE, POINT, SPOT, Lights
+from gpupro.shading.light_kernel import tile_list_hits
 from gpupro.shading.light_loop import default_light_chunk, light_reaches
 from gpupro.technique import Counter, Option, Technique, integer, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
@@ -143,7 +146,10 @@ def prune_and_sort(coarse_lists, lights: Lights, position, coverage, *, tile: in
     ``coverage`` [H, W]; static: ``tile`` pixels, ``light_chunk`` slots pruned per step."""
     points = to_tiles(jnp.asarray(position, jnp.float32), tile=tile)
     covered = to_tiles(jnp.asarray(coverage) > 0, tile=tile)
-    kept = prune_light_lists(coarse_lists, lights, points, covered, light_chunk=light_chunk)
+    if jax.default_backend() == "gpu":  # one kernel program per tile; a test, so no gradient flows through it
+        kept = tile_list_hits(*jax.lax.stop_gradient((points, covered, coarse_lists, lights)))
+    else:
+        kept = prune_light_lists(coarse_lists, lights, points, covered, light_chunk=light_chunk)
     return sort_by_type(coarse_lists, kept, lights.kind)
 
 
