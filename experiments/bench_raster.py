@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.bench import device_info, peak_memory_bytes, time_function
-from gpupro.raster.rasterize import rasterize
+from gpupro.raster.rasterize import RESOLVE_METHODS, rasterize
 
 ALL_SIZES = (10_000, 100_000, 1_000_000)
 ALL_RESOLUTIONS = ((640, 360), (1920, 1080))
@@ -86,11 +86,12 @@ def triangle_soup(num_triangles: int, width: int, height: int, *, mean_area: flo
 
 
 def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: int, tile_capacity: int,
-                 samples: int = 1) -> tuple[dict, np.ndarray]:
-    """Times jitted ``rasterize`` at ``samples`` per pixel; returns (results, triangle ids [H, W(, S)])."""
+                 samples: int = 1, resolve: str | None = None) -> tuple[dict, np.ndarray]:
+    """Times jitted ``rasterize`` at ``samples`` per pixel (``resolve``: its option of that name); returns
+    (results, triangle ids [H, W(, S)])."""
     faces = np.arange(clip.shape[0], dtype=np.int32).reshape(-1, 3)
     fn = jax.jit(lambda c, f: rasterize(c, f, resolution=(height, width), samples=samples, tile=tile,
-                                        tile_capacity=tile_capacity))
+                                        tile_capacity=tile_capacity, resolve=resolve))
     timing = time_function(fn, jnp.asarray(clip), jnp.asarray(faces), repeats=repeats, warmup=3)
     frags = timing.pop("result")
     timing["counters"] = {k: int(v) for k, v in frags.counters.items()}
@@ -180,6 +181,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--tile-capacity", type=int, default=inspect.signature(rasterize).parameters["tile_capacity"].default)
     parser.add_argument("--samples", type=int, default=1,
                         help="also time this many samples per pixel (2, 4 or 8) and report its cost over 1 sample")
+    parser.add_argument("--resolve", choices=RESOLVE_METHODS,
+                        help="how rasterize resolves the tiles' lists (default: kernel on GPUs, chunks elsewhere)")
     parser.add_argument("--no-gl", action="store_true", help="skip the OpenGL column")
     parser.add_argument("--json", help="write all results to this file")
     args = parser.parse_args(argv)
@@ -192,7 +195,8 @@ def main(argv: list[str] | None = None) -> None:
     ctx, gl_status = (None, "disabled with --no-gl") if args.no_gl else open_gl_context()
     if ctx is not None:
         gl_status = f"{ctx.info['GL_RENDERER']} ({ctx.info['GL_VERSION']})"
-    print(f"device: {info}", flush=True)
+    args.resolve = args.resolve or ("kernel" if info["backend"] == "gpu" else "chunks")
+    print(f"device: {info}; resolve: {args.resolve}", flush=True)
     print(f"OpenGL: {gl_status}" if ctx is not None else f"OpenGL: skipped, {gl_status}", flush=True)
 
     results = []
@@ -200,11 +204,11 @@ def main(argv: list[str] | None = None) -> None:
     for n, width, height in cases:
         clip = triangle_soup(n, width, height, mean_area=args.area, seed=args.seed)
         print(f"{n} triangles at {width}x{height} ...", flush=True)
-        gp, gp_ids = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity)
+        gp, gp_ids = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity, resolve=args.resolve)
         case = {"triangles": n, "resolution": f"{width}x{height}", "gpupro": gp}
         if args.samples > 1:
             case["gpupro_multisampled"], _ = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity,
-                                                          args.samples)
+                                                          args.samples, args.resolve)
             case["samples"] = args.samples
         if ctx is not None:
             gl, gl_ids = bench_opengl(ctx, clip, width, height, args.repeats)
@@ -223,7 +227,7 @@ def main(argv: list[str] | None = None) -> None:
           "MSAA/1 = multisampled median / single-sample median")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"device": info, "opengl": gl_status, "mean_area_px": args.area, "seed": args.seed, "results": results}, f, indent=1)
+            json.dump({"device": info, "resolve": args.resolve, "opengl": gl_status, "mean_area_px": args.area, "seed": args.seed, "results": results}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ MODULES = ["gpupro"] + [m.name for m in pkgutil.walk_packages(gpupro.__path__, p
 
 # Static options of the core ops, plus every option a registered technique declares.
 STATIC_OPTIONS = {
-    "resolution", "cull_backfaces", "tile", "tile_capacity", "pair_capacity", "chunk_batch", "light_chunk",
+    "resolution", "cull_backfaces", "tile", "tile_capacity", "pair_capacity", "chunk_batch", "resolve", "light_chunk",
     "distribution", "operator", "pcf", "count", "repeats", "warmup", "steps", "half", "channel_suffixes",
 } | {o.name for t in registered().values() for o in t.options}
 

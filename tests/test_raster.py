@@ -176,7 +176,7 @@ def test_partial_chunks_pair_by_pair_or_as_chunks_give_the_reference_image(tail_
     # backends' is as a chunk), with lists long enough for full chunks too.
     rng = np.random.default_rng(9)
     clip, faces = random_soup(rng, 120)
-    tiled = rasterize(clip, faces, resolution=RES, tile_capacity=4, chunk_batch=7, tail_batch=tail_batch)
+    tiled = rasterize(clip, faces, resolution=RES, tile_capacity=4, chunk_batch=7, tail_batch=tail_batch, resolve="chunks")
     ref = reference(clip, faces, resolution=RES)
     np.testing.assert_array_equal(np.asarray(tiled.triangle_id), np.asarray(ref.triangle_id))
     np.testing.assert_array_equal(np.asarray(tiled.depth), np.asarray(ref.depth))
@@ -186,6 +186,30 @@ def test_partial_chunks_pair_by_pair_or_as_chunks_give_the_reference_image(tail_
         assert 4 * c["tile_chunks"] + c["tail_pairs"] == c["tile_triangle_pairs"]
     else:
         assert c["tail_pairs"] == 0 and 4 * c["tile_chunks"] > c["tile_triangle_pairs"]
+
+
+def test_kernel_resolve_equals_the_reference():
+    """The per-tile kernel (compiled on GPUs, Pallas' interpreter elsewhere) gives the brute-force reference's
+    fragments bit for bit: triangles behind the eye (the float test), two binning passes, 4 samples and
+    a depth-peeling floor at, between and beyond the fragments' depths."""
+    rng = np.random.default_rng(4)
+    clip, faces = random_soup(rng, 300)
+    shape = RES + (4,)
+    floor = (np.where(rng.uniform(size=shape) < 0.3, -np.inf, rng.uniform(0.8, 1.0, shape)).astype(np.float32),
+             rng.integers(-1, len(faces), shape).astype(np.int32))
+    kernel = rasterize(clip, faces, resolution=RES, samples=4, pair_capacity=1024, floor=floor, resolve="kernel")
+    ref = reference(clip, faces, resolution=RES, samples=4, floor=floor)
+    np.testing.assert_array_equal(np.asarray(kernel.triangle_id), np.asarray(ref.triangle_id))
+    np.testing.assert_array_equal(np.asarray(kernel.depth), np.asarray(ref.depth))
+    c = {k: int(v) for k, v in kernel.counters.items()}
+    assert c["binning_passes"] >= 2 and c["tail_pairs"] == 0 and 0 < c["tile_chunks"] <= c["binning_passes"] * (RES[0] // 8) * (RES[1] // 8)
+    ids, depth = np.asarray(kernel.triangle_id), np.asarray(kernel.depth)
+    drawn = ids >= 0
+    assert 0.5 < drawn.mean() < 1
+    at_or_before = (depth < floor[0]) | ((depth == floor[0]) & (ids <= floor[1]))
+    assert not (at_or_before & drawn).any(), "nothing at or before the floor is drawn"
+    with pytest.raises(ValueError, match="resolve"):
+        rasterize(clip, faces, resolution=RES, resolve="tiles")
 
 
 def test_equal_depth_goes_to_lower_triangle_id():

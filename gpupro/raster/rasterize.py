@@ -146,6 +146,19 @@ def _check_tail_batch(value) -> int | None:
     raise ValueError(f"rasterize: tail_batch must be an integer >= 0 or None, got {value!r}")
 
 
+RESOLVE_METHODS = ("chunks", "kernel")
+"""How ``rasterize`` resolves the tiles' lists: chunks in XLA ``while`` loops, or one kernel program per tile."""
+
+
+def _check_resolve(value) -> str:
+    """``resolve``: one of :data:`RESOLVE_METHODS`, or None for "chunks"."""
+    if value is None:
+        return "chunks"
+    if value not in RESOLVE_METHODS:
+        raise ValueError(f"rasterize: resolve must be one of {RESOLVE_METHODS} or None, got {value!r}")
+    return value
+
+
 def _check_samples(samples) -> int:
     """A sample count of :data:`gpupro.raster.setup.SAMPLE_PATTERNS` (1, 2, 4 or 8), or ValueError."""
     if not _is_int(samples) or samples not in SAMPLE_PATTERNS:
@@ -185,13 +198,14 @@ def _fragments(setup: TriangleSetup, triangle_id, depth, counters, resolution) -
 
 
 @functools.partial(jax.jit, static_argnames=("resolution", "samples", "cull_backfaces", "tile", "tile_capacity",
-                                              "pair_capacity", "chunk_batch", "tail_batch"))
+                                              "pair_capacity", "chunk_batch", "tail_batch", "resolve"))
 def _rasterize_padded(clip, faces, valid, floor, *, resolution, samples, cull_backfaces, tile, tile_capacity,
-                      pair_capacity, chunk_batch, tail_batch) -> Fragments:
+                      pair_capacity, chunk_batch, tail_batch, resolve) -> Fragments:
     setup = setup_triangles(clip, faces, resolution=resolution, cull_backfaces=cull_backfaces)
     triangle_id, depth, counters = rasterize_tiled(
         setup, resolution=resolution, samples=samples, tile=tile, tile_capacity=tile_capacity, pair_capacity=pair_capacity,
-        chunk_batch=chunk_batch, tail_batch=tail_batch, floor=floor,
+        chunk_batch=chunk_batch, tail_batch=tail_batch, kernel=resolve == "kernel",
+        interpret=jax.default_backend() != "gpu", floor=floor,
     )
     # Only the caller's valid faces: padding and replaced faces all read vertex 0, which may be NaN.
     counters["nonfinite_triangles"] = jnp.sum(~setup.finite & valid).astype(jnp.int32)
@@ -217,6 +231,7 @@ def rasterize(
     pair_capacity: int | None = None,
     chunk_batch: int | None = None,
     tail_batch: int | None = None,
+    resolve: str | None = None,
     floor: tuple | None = None,
 ) -> Fragments:
     """Rasterizes triangles with the tiled rasterizer.
@@ -240,6 +255,13 @@ def rasterize(
         pairs a step, >= 0 or None; 0 resolves it as a chunk like the others (static; None: the
         number of tiles on a CPU from :data:`TAIL_MIN_TILES` tiles up, where lightly loaded tiles
         would waste most of a chunk, else 0; :func:`_default_tail_batch` says why).
+      resolve: how the tiles' lists are resolved (static): ``"chunks"`` (chunks of ``tile_capacity``
+        triangles in XLA ``while`` loops, ``chunk_batch`` and ``tail_batch`` at a time), ``"kernel"``
+        (one Pallas kernel program per tile walks its whole list, :mod:`gpupro.raster.tile_kernel`;
+        ``tile_capacity``, ``chunk_batch`` and ``tail_batch`` then do not apply, and ``tile_chunks``
+        counts the non-empty tile lists; the fast form on GPUs, where each step of the chunk loops is a
+        round trip to the host; off GPUs it runs in Pallas' interpreter, for tests), or None: "chunks".
+        The images are the same bit for bit.
       floor: None, or ``(depth, triangle_id)``, float32 and integer [H, W] ([H, W, S] multisampled): a
         depth-peeling floor. Only fragments strictly after it in (window depth, triangle id) order are
         drawn (behind it, or at its depth with a higher id: :func:`gpupro.raster.tiled.above_floor`), so
@@ -264,6 +286,7 @@ def rasterize(
     pair_capacity = _check_option("pair_capacity", pair_capacity, optional=True)
     chunk_batch = _check_option("chunk_batch", chunk_batch, optional=True)
     tail_batch = _check_tail_batch(tail_batch)
+    resolve = _check_resolve(resolve)
     floor = _check_floor(floor, resolution, samples, "rasterize")
     num_faces = faces.shape[0]
     faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
@@ -282,6 +305,7 @@ def rasterize(
         pair_capacity=pair_capacity or default_pair_capacity(faces.shape[0], num_tiles),
         chunk_batch=chunk_batch or max(1, num_tiles // samples),
         tail_batch=_default_tail_batch(num_tiles) if tail_batch is None else tail_batch,
+        resolve=resolve,
     )
     return frags._replace(counters=dict(frags.counters, triangles=jnp.int32(num_faces), invalid_faces=invalid))
 

@@ -12,8 +12,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from gpupro.raster.setup import TriangleSetup, evaluate, sample_offsets
-from gpupro.raster.tiled import NO_TRIANGLE, above_floor
+from gpupro.raster.setup import NO_TRIANGLE, TriangleSetup, above_floor, evaluate, sample_offsets
 
 
 @functools.partial(jax.jit, static_argnames=("resolution", "samples", "chunk"))
@@ -22,7 +21,7 @@ def rasterize_brute_force(setup: TriangleSetup, *, resolution: tuple[int, int], 
     """Returns ``(triangle_id int32 [H, W, S], depth float32 [H, W, S])`` at ``samples`` = S samples per
     pixel, each sample measured from its own pixel's centre: -1 and 1 where nothing is covered.
     ``floor``: None, or (depth, triangle id) [H, W, S] that a drawn fragment must come after
-    (:func:`gpupro.raster.tiled.above_floor`)."""
+    (:func:`gpupro.raster.setup.above_floor`)."""
     height, width = resolution
     num_faces = setup.visible.shape[0]
     padded = -(-num_faces // chunk) * chunk

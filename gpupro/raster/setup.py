@@ -95,6 +95,8 @@ class TriangleSetup(typing.NamedTuple):
     plane: jax.Array
 
 
+NO_TRIANGLE = jnp.iinfo(jnp.int32).max
+"""The triangle id of an empty sample in z-buffers (larger than every id, so the lower id wins ties)."""
 SUBPIXEL_BITS = 8
 """Sub-pixel precision of snapped vertices: 1/256 pixel, as D3D11 requires."""
 GUARD_BAND = 1 << 14
@@ -222,9 +224,17 @@ def edge_thresholds(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, bas
     fixed, fixed_edges = setup.fixed[tri], setup.fixed_edges[tri]
     origin = jnp.roll(fixed, -1, axis=-2)  # edge i starts at vertex i + 1
     to_fixed = lambda p: (jnp.asarray(p, jnp.int32) << (SUBPIXEL_BITS - 4))[..., None]
-    q, r = exact_quotient(fixed_edges[..., 1], to_fixed(base_x) - origin[..., 0],
-                          fixed_edges[..., 0], to_fixed(base_y) - origin[..., 1])
-    return jnp.where((r > 0) | setup.owns_edge[tri], 0, 1) - q
+    return edge_threshold(fixed_edges[..., 1], to_fixed(base_x) - origin[..., 0], fixed_edges[..., 0],
+                          to_fixed(base_y) - origin[..., 1], setup.owns_edge[tri])
+
+
+def edge_threshold(a, x, b, y, owns):
+    """The threshold k = t − q of one snapped edge at one base point (:func:`edge_thresholds`): ``a``, ``b``
+    the edge's int32 steps, (``x``, ``y``) the base point minus the edge's origin in 1/256 pixel, ``owns``
+    whether the edge is owned (top-left rule); arrays of any shape that broadcast together. Returns k
+    int32 of the broadcast shape; the base point itself is inside the edge iff k ≤ 0."""
+    q, r = exact_quotient(a, x, b, y)
+    return jnp.where((r > 0) | owns, 0, 1) - q
 
 
 def _snap(c: jax.Array, width: int, height: int):
@@ -380,8 +390,8 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     vertex = setup.fixed[t][..., 0, :]
     plane = setup.plane[t]
     at = lambda q, *index: q[(...,) + index][trailing]  # a per-triangle entry [...A] → [...A, 1...]
-    affine = at(plane, 0) + (_exact_products(at(plane, 1), sample_x - vertex[..., 0][trailing])
-                             + _exact_products(at(plane, 2), sample_y - vertex[..., 1][trailing]))
+    affine = affine_depth([at(plane, i) for i in range(3)], sample_x - vertex[..., 0][trailing],
+                          sample_y - vertex[..., 1][trailing])
 
     visible = valid_index & setup.visible[t]
     snapped = setup.snapped[t]
@@ -391,10 +401,10 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
         """Other triangles: the float edges and homogeneous depth at the samples (exact in float32)."""
         px, py = sample_x.astype(jnp.float32) / 256, sample_y.astype(jnp.float32) / 256
         e, o, owns, coef = setup.edges[t], setup.edge_origin[t], setup.owns_edge[t], setup.depth_coef[t]
-        values = [at(e, i, 0) * (px - at(o, i, 0)) + at(e, i, 1) * (py - at(o, i, 1)) + at(e, i, 2) for i in range(3)]
-        inside = [jnp.where(at(owns, i), values[i] >= 0, values[i] > 0) for i in range(3)]
-        depth = 0.5 + (values[0] * at(coef, 0) + values[1] * at(coef, 1) + values[2] * at(coef, 2))
-        return jnp.broadcast_to(inside[0] & inside[1] & inside[2], full), jnp.broadcast_to(depth, full)
+        inside, depth = homogeneous_coverage([[at(e, i, j) for j in range(3)] for i in range(3)],
+                                             [[at(o, i, j) for j in range(2)] for i in range(3)],
+                                             [at(owns, i) for i in range(3)], [at(coef, i) for i in range(3)], px, py)
+        return jnp.broadcast_to(inside, full), jnp.broadcast_to(depth, full)
 
     # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
     # unless the caller vmaps).
@@ -405,6 +415,34 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     depth = jnp.where(snapped, affine, float_depth)
     covered = visible[trailing] & inside & (depth >= 0) & (depth <= 1)
     return covered, depth
+
+
+def above_floor(depth, tri, floor_depth, floor_id):
+    """Whether fragments (``depth``, ``tri``) come strictly after the floor (``floor_depth``, ``floor_id``)
+    in (depth, triangle id) order, all of any shape that broadcasts (e.g. [B, C, T² S] against
+    [B, 1, T² S]) → bool: the test of a depth-peeling pass, which keeps fragments behind the previous
+    layer and, at its depth, those of higher id (coplanar ties are then neither lost nor drawn twice)."""
+    return (depth > floor_depth) | ((depth == floor_depth) & (tri > floor_id))
+
+
+def affine_depth(plane: list, dx: jax.Array, dy: jax.Array) -> jax.Array:
+    """Window depth of a snapped triangle at samples (dx, dy) int32 from its vertex 0, in 1/256 pixel:
+    z_0 + ∂z/∂x dx + ∂z/∂y dy with ``plane`` = [z_0, ∂z/∂x, ∂z/∂y] (``TriangleSetup.plane``'s components,
+    broadcast against dx, dy), the products exact (:func:`_exact_products`) and summed in a fixed order,
+    so every program computes the same bits."""
+    return plane[0] + (_exact_products(plane[1], dx) + _exact_products(plane[2], dy))
+
+
+def homogeneous_coverage(e: list, o: list, owns: list, coef: list, px: jax.Array, py: jax.Array):
+    """Coverage and window depth of a triangle that is not snapped, at pixel positions (``px``, ``py``)
+    float32: the float edge functions E_i = a (x − x_r) + b (y − y_r) + c (inside: E_i > 0, or ≥ 0 on an
+    owned edge) and depth 0.5 + Σ_i E_i depth_coef_i. ``e[i][j]``, ``o[i][j]``, ``owns[i]``, ``coef[i]``:
+    components of ``TriangleSetup.edges``, ``edge_origin``, ``owns_edge`` and ``depth_coef`` for edge i,
+    broadcast against px, py. Returns ``(inside bool, depth float32)``."""
+    values = [e[i][0] * (px - o[i][0]) + e[i][1] * (py - o[i][1]) + e[i][2] for i in range(3)]
+    inside = [jnp.where(owns[i], values[i] >= 0, values[i] > 0) for i in range(3)]
+    depth = 0.5 + (values[0] * coef[0] + values[1] * coef[1] + values[2] * coef[2])
+    return inside[0] & inside[1] & inside[2], depth
 
 
 def barycentrics(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:

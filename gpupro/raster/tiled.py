@@ -21,10 +21,12 @@ Binning is count → exclusive scan → fill with fixed capacities, and no capac
    ``chunk_batch`` at a time against the tile's samples (again a while loop; exact coverage from one
    threshold per edge and block of at most 8 × 8 pixels, :func:`gpupro.raster.setup.evaluate`) and
    merged into the z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower
-   triangle id. With ``tail_batch`` > 0 (the default on CPUs for large images) only full chunks go
-   this way; each tile's last, partial chunk is resolved pair by pair instead, ``tail_batch``
-   (triangle, tile) pairs a step (a third while loop). At 1920 × 1080 with 10k small triangles most
-   tiles hold one or two triangles, and a 16-slot chunk spent 8–16× the coverage tests its pairs need.
+   triangle id. With ``kernel`` (the fast form on GPUs) one kernel program per tile walks the tile's
+   whole list instead (:mod:`gpupro.raster.tile_kernel`; the same arithmetic, no loop on the host). With ``tail_batch``
+   > 0 (the default on CPUs for large images) only full chunks go this way; each tile's last,
+   partial chunk is resolved pair by pair instead, ``tail_batch`` (triangle, tile) pairs a step (a
+   third while loop). At 1920 × 1080 with 10k small triangles most tiles hold one or two triangles,
+   and a 16-slot chunk spent 8–16× the coverage tests its pairs need.
 
 Counters report the work and every capacity exceeded (pairs and tiles past capacity, passes run).
 """
@@ -37,9 +39,17 @@ import math
 import jax
 import jax.numpy as jnp
 
-from gpupro.raster.setup import SAMPLE_PATTERNS, TriangleSetup, evaluate, plane_origin, sample_offsets
+from gpupro.raster.setup import (
+    NO_TRIANGLE,
+    SAMPLE_PATTERNS,
+    TriangleSetup,
+    above_floor,
+    evaluate,
+    plane_origin,
+    sample_offsets,
+)
+from gpupro.raster.tile_kernel import resolve_tiles
 
-NO_TRIANGLE = jnp.iinfo(jnp.int32).max
 SNAP_MARGIN = 1.0 / 64
 """Pixels by which the tile test widens a tile: more than snapping moves a vertex (√2/512)."""
 
@@ -94,14 +104,6 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
     lowest = jnp.where(snapped, affine_lo - affine_slack, jnp.min(depth_corners, axis=0) - depth_slack)
     highest = jnp.where(snapped, affine_hi + affine_slack, jnp.max(depth_corners, axis=0) + depth_slack)
     return edges_ok & (highest >= 0) & (lowest <= 1)
-
-
-def above_floor(depth, tri, floor_depth, floor_id):
-    """Whether fragments (``depth``, ``tri``) come strictly after the floor (``floor_depth``, ``floor_id``)
-    in (depth, triangle id) order, all of any shape that broadcasts (e.g. [B, C, T² S] against
-    [B, 1, T² S]) → bool: the test of a depth-peeling pass, which keeps fragments behind the previous
-    layer and, at its depth, those of higher id (coplanar ties are then neither lost nor drawn twice)."""
-    return (depth > floor_depth) | ((depth == floor_depth) & (tri > floor_id))
 
 
 def to_tile_layout(image, *, tile: int, samples: int):
@@ -189,9 +191,20 @@ def _sample_layout(tile: int, samples: int):
     return block, tile // block, block_corner, offset_x, offset_y
 
 
+def _tile_sample_positions(tile: int, samples: int) -> tuple[jax.Array, jax.Array]:
+    """(x, y) int32 [T² S]: each sample's position in its tile in 1/16 pixel from the tile's corner, in the
+    z-buffer's order (:func:`_sample_layout`)."""
+    _, blocks, block_corner, offset_x, offset_y = _sample_layout(tile, samples)
+    zero = jnp.zeros((blocks, blocks, offset_x.shape[0]), jnp.int32)
+    x = zero + block_corner[None, :, None] + offset_x[None, None, :]
+    y = zero + block_corner[:, None, None] + offset_y[None, None, :]
+    return x.reshape(-1), y.reshape(-1)
+
+
 @functools.partial(
     jax.jit,
-    static_argnames=("resolution", "samples", "tile", "tile_capacity", "pair_capacity", "chunk_batch", "tail_batch"),
+    static_argnames=("resolution", "samples", "tile", "tile_capacity", "pair_capacity", "chunk_batch", "tail_batch",
+                     "kernel", "interpret"),
 )
 def rasterize_tiled(
     setup: TriangleSetup,
@@ -203,9 +216,16 @@ def rasterize_tiled(
     pair_capacity: int,
     chunk_batch: int,
     tail_batch: int = 0,
+    kernel: bool = False,
+    interpret: bool = False,
     floor=None,
 ) -> tuple[jax.Array, jax.Array, dict]:
     """Resolves visibility with tiles at ``samples`` samples per pixel (:data:`SAMPLE_PATTERNS`).
+
+    ``kernel``: resolve each tile's whole list in one kernel program per tile
+    (:func:`gpupro.raster.tile_kernel.resolve_tiles`; ``interpret``: in Pallas' interpreter) instead of
+    the chunked ``while`` loops, and run the first binning pass outside the ``while`` loop of passes
+    (on a GPU each loop test is a round trip to the host; one pass is the common case).
 
     ``floor``: None, or (depth float32, triangle id int32) [H, W, S]: only fragments after it in (depth,
     id) order are drawn (:func:`above_floor`; a depth-peeling pass).
@@ -234,6 +254,7 @@ def rasterize_tiled(
     tile_samples = tile * tile * samples
     if floor is not None:
         floor = tuple(to_tile_layout(f, tile=tile, samples=samples) for f in floor)
+    positions = _tile_sample_positions(tile, samples) if kernel else None
 
     def bin_pass(state):
         base, zbuf, ids, stats = state
@@ -259,9 +280,14 @@ def rasterize_tiled(
 
         counts = jnp.zeros((num_tiles,), jnp.int32).at[tile_key].add(1, mode="drop")
         tile_start = jnp.cumsum(counts) - counts
-        zbuf, ids, total_chunks, tail_pairs = _resolve_lists(
-            setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capacity, batch=chunk_batch, tail_batch=tail_batch,
-            tile=tile, tiles_x=tiles_x, samples=samples, floor=floor)
+        if kernel:  # each tile's list as one work item
+            zbuf, ids = resolve_tiles(setup, zbuf, ids, tile_start, counts, tri_sorted, positions, tile=tile,
+                                      tiles_x=tiles_x, floor=floor, interpret=interpret)
+            total_chunks, tail_pairs = jnp.sum(counts > 0).astype(jnp.int32), jnp.int32(0)
+        else:
+            zbuf, ids, total_chunks, tail_pairs = _resolve_lists(
+                setup, zbuf, ids, tile_start, counts, tri_sorted, tile_capacity, batch=chunk_batch,
+                tail_batch=tail_batch, tile=tile, tiles_x=tiles_x, samples=samples, floor=floor)
         tile_counts, passes, chunks_run, tail_run = stats
         stats = (tile_counts + counts, passes + 1, chunks_run + total_chunks, tail_run + tail_pairs)
         return base + pair_capacity, zbuf, ids, stats
@@ -269,7 +295,10 @@ def rasterize_tiled(
     zbuf = jnp.full((num_tiles, tile_samples), jnp.inf, jnp.float32)
     ids = jnp.full((num_tiles, tile_samples), NO_TRIANGLE, jnp.int32)
     stats = (jnp.zeros((num_tiles,), jnp.int32), jnp.int32(0), jnp.int32(0), jnp.int32(0))
-    _, zbuf, ids, stats = jax.lax.while_loop(lambda s: s[0] < total_pairs, bin_pass, (jnp.int32(0), zbuf, ids, stats))
+    state = (jnp.int32(0), zbuf, ids, stats)
+    if kernel:
+        state = bin_pass(state)
+    _, zbuf, ids, stats = jax.lax.while_loop(lambda s: s[0] < total_pairs, bin_pass, state)
 
     def untile(buf):
         buf = buf.reshape(tiles_y, tiles_x, blocks, blocks, block, block, samples).transpose(0, 2, 4, 1, 3, 5, 6)
