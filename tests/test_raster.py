@@ -212,6 +212,25 @@ def test_kernel_resolve_equals_the_reference():
         rasterize(clip, faces, resolution=RES, resolve="tiles")
 
 
+def test_raster_pass_option_picks_the_kernel():
+    """The ``raster`` pass's ``resolve`` option reaches ``rasterize``: the same fragments, one tile list per
+    work item (``tile_chunks`` counts non-empty lists, ``tail_pairs`` none); a bad value is named."""
+    import gpupro as gp
+    from gpupro.pipeline import make_pass
+
+    scene = gp.scenes.cornell_box(resolution=(24, 24))
+    frames = {r: gp.complete([make_pass("raster", resolve=r, tile_capacity=2)], outputs=("triangle_id", "depth"))
+              for r in ("kernel", "chunks")}
+    kernel, chunks = (f(f.init_params(), scene) for f in frames.values())
+    np.testing.assert_array_equal(np.asarray(kernel["triangle_id"]), np.asarray(chunks["triangle_id"]))
+    np.testing.assert_array_equal(np.asarray(kernel["depth"]), np.asarray(chunks["depth"]))
+    assert (np.asarray(kernel["triangle_id"]) >= 0).mean() > 0.5
+    k, c = kernel["counters"]["raster"], chunks["counters"]["raster"]
+    assert int(k["tile_chunks"]) <= 9 < int(c["tile_chunks"]), "a 24 × 24 image has 9 tiles; chunks of 2 take more"
+    with pytest.raises(ValueError, match=r"resolve: expected one of \['chunks', 'kernel'\], or none, got 'tiles'"):
+        make_pass("raster", resolve="tiles")
+
+
 def test_equal_depth_goes_to_lower_triangle_id():
     quad = np.array([[-1, -1, 0, 1], [1, -1, 0, 1], [1, 1, 0, 1], [-1, 1, 0, 1]], np.float32)
     faces = np.array([[0, 1, 2], [0, 2, 3], [0, 1, 2], [0, 2, 3]])

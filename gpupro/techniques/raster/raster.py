@@ -28,6 +28,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from gpupro.raster import rasterize_scene, reference, split_faces
+from gpupro.raster.rasterize import RESOLVE_METHODS
 from gpupro.raster.setup import SAMPLE_PATTERNS
 from gpupro.scene.camera import to_clip
 from gpupro.technique import BOOLEAN, Buffer, Capacity, Counter, Option, Technique, integer, one_of, optional, register
@@ -49,10 +50,11 @@ def _fragment_buffers(fragments) -> dict:
 
 
 def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch,
-                tail_batch):
+                tail_batch, resolve):
     """Tiled rasterization of ``scene.mesh`` from ``scene.camera`` → fragment buffers [H, W(, S)(, 3)]."""
     fragments = rasterize_scene(scene, samples=samples, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity,
-                                pair_capacity=pair_capacity, chunk_batch=chunk_batch, tail_batch=tail_batch)
+                                pair_capacity=pair_capacity, chunk_batch=chunk_batch, tail_batch=tail_batch,
+                                resolve=resolve)
     return _fragment_buffers(fragments), fragments.counters
 
 
@@ -88,6 +90,9 @@ register(Technique(
         Option("chunk_batch", None, optional(integer(1)), "tile chunks resolved per step; none: the number of tiles divided by samples"),
         Option("tail_batch", None, optional(integer(0)), "pairs of each tile's last, partial chunk resolved one by one per step "
                                                          "(0: as a chunk); none: the number of tiles on CPUs from 1,024 tiles, else 0"),
+        Option("resolve", None, optional(one_of(*RESOLVE_METHODS)),
+               "how tile lists are resolved: chunks (XLA loops) or kernel (one Pallas program per tile, the fast "
+               "form on GPUs; interpreted elsewhere); none: chunks"),
     ),
     capacities=(
         Capacity("tile_capacity", "tiles_overflowed", "tiles holding more triangles take several chunks", lossy=False),
