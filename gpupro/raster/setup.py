@@ -410,10 +410,16 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     # unless the caller vmaps).
     float_inside, float_depth = jax.lax.cond(
         jnp.any(visible & ~snapped), homogeneous, lambda: (jnp.zeros(full, bool), jnp.zeros(full, jnp.float32)))
-    snapped = snapped[trailing]
-    inside = jnp.where(snapped, exact[0] & exact[1] & exact[2], float_inside)
+    return select_coverage(visible[trailing], snapped[trailing], exact[0] & exact[1] & exact[2], affine,
+                           float_inside, float_depth)
+
+
+def select_coverage(visible, snapped, exact_inside, affine, float_inside, float_depth):
+    """The decision of :func:`evaluate` from both tests (all bool or float32, broadcast together): a snapped
+    triangle's exact edges and affine depth, another's float edges and homogeneous depth; covered where
+    the triangle is visible, inside and its window depth lies in [0, 1]. Returns ``(covered, depth)``."""
     depth = jnp.where(snapped, affine, float_depth)
-    covered = visible[trailing] & inside & (depth >= 0) & (depth <= 1)
+    covered = visible & jnp.where(snapped, exact_inside, float_inside) & (depth >= 0) & (depth <= 1)
     return covered, depth
 
 

@@ -41,6 +41,7 @@ from gpupro.raster.setup import (
     affine_depth,
     edge_threshold,
     homogeneous_coverage,
+    select_coverage,
 )
 
 SAMPLES_PER_WARP = 128
@@ -77,10 +78,8 @@ def _coverage(f: dict, sample_x, sample_y):
     float_inside, float_depth = homogeneous_coverage(
         [[f[f"edge{i}{j}"] for j in range(3)] for i in range(3)], [[f[f"origin{i}{j}"] for j in range(2)] for i in range(3)],
         [f[f"owns{i}"] > 0 for i in range(3)], [f[f"coef{i}"] for i in range(3)], px, py)
-    snapped = f["snapped"] > 0
-    inside = jnp.where(snapped, exact[0] & exact[1] & exact[2], float_inside)
-    depth = jnp.where(snapped, affine, float_depth)
-    return (f["visible"] > 0) & inside & (depth >= 0) & (depth <= 1), depth
+    return select_coverage(f["visible"] > 0, f["snapped"] > 0, exact[0] & exact[1] & exact[2], affine, float_inside,
+                           float_depth)
 
 
 def _tile_kernel(*refs, names: tuple, lanes: int, tile_step: int, tiles_x: int, has_floor: bool):

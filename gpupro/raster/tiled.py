@@ -22,11 +22,11 @@ Binning is count → exclusive scan → fill with fixed capacities, and no capac
    threshold per edge and block of at most 8 × 8 pixels, :func:`gpupro.raster.setup.evaluate`) and
    merged into the z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower
    triangle id. With ``kernel`` (the fast form on GPUs) one kernel program per tile walks the tile's
-   whole list instead (:mod:`gpupro.raster.tile_kernel`; the same arithmetic, no loop on the host). With ``tail_batch``
-   > 0 (the default on CPUs for large images) only full chunks go this way; each tile's last,
-   partial chunk is resolved pair by pair instead, ``tail_batch`` (triangle, tile) pairs a step (a
-   third while loop). At 1920 × 1080 with 10k small triangles most tiles hold one or two triangles,
-   and a 16-slot chunk spent 8–16× the coverage tests its pairs need.
+   whole list instead (:mod:`gpupro.raster.tile_kernel`; the same arithmetic, no loop on the host).
+   With ``tail_batch`` > 0 (the default on CPUs for large images) only full chunks go this way; each
+   tile's last, partial chunk is resolved pair by pair instead, ``tail_batch`` (triangle, tile) pairs a
+   step (a third while loop). At 1920 × 1080 with 10k small triangles most tiles hold one or two
+   triangles, and a 16-slot chunk spent 8–16× the coverage tests its pairs need.
 
 Counters report the work and every capacity exceeded (pairs and tiles past capacity, passes run).
 """

@@ -19,7 +19,8 @@ Steps, per tile τ of t × t pixels (T = ⌈H/t⌉ · ⌈W/t⌉) with covered sa
    points grow C to ``max_lights_per_tile``);
 2. fine pruning (on GPUs one kernel program per tile, :func:`gpupro.shading.light_kernel.tile_list_hits`,
    which keeps the tile's samples in registers and walks its list to its own length; elsewhere the XLA
-   loop of :func:`prune_light_lists`): keep listed light i only if  ∃ x ∈ S_τ : reaches_i(x), with the light's true volume
+   loop of :func:`prune_light_lists`): keep listed light i only if  ∃ x ∈ S_τ : reaches_i(x), with the
+   light's true volume
        point:  |x − p_i| < r_i;   spot:  |x − p_i| < r_i  and  (x − p_i)·a_i > cos θ_i · |x − p_i|;
        capsule:  |x − q_i(x)| < r_i,  q_i(x) = p_i + clamp((x − p_i)·a_i, −ℓ_i, ℓ_i) a_i  (the true capsule,
                  not its bounding sphere: a capsule whose sphere covers samples of τ that the capsule
