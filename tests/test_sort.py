@@ -1,12 +1,13 @@
 """The project's LSD radix sort (gpupro.sort): sorted, a permutation, equal to a stable argsort on random
-and adversarial keys of every supported dtype, with and without jit; digit scans; refused inputs."""
+and adversarial keys of every supported dtype, with and without jit; digit scans; refused inputs. The
+bounded-key pair sort, packed and not, against a stable argsort."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpupro.sort import radix_sort, sortable_bits
+from gpupro.sort import radix_sort, sort_by_bounded_key, sortable_bits
 
 JITTED = jax.jit(radix_sort, static_argnames=("key_bits", "block"))
 RNG = np.random.default_rng(0)
@@ -145,3 +146,15 @@ def test_bad_input_is_refused_by_name():
     with pytest.raises(ValueError, match="leading axis of the 3 keys"):
         radix_sort(np.array([3, 1, 2], np.uint32), np.zeros(2))
     assert radix_sort(np.zeros(0, np.float32)).permutation.shape == (0,)
+
+
+@pytest.mark.parametrize("key_bound", [7, 1 << 24])  # 3 + 9 index bits fit in 32 (packed); 25 + 9 do not
+def test_sort_by_bounded_key_is_a_stable_sort(key_bound):
+    n = 300  # 9 index bits
+    keys = RNG.integers(0, min(key_bound, 6) + 1, n).astype(np.int32)  # many ties; the bound itself included
+    keys[:3] = key_bound
+    values = RNG.integers(-1000, 1000, n).astype(np.int32)
+    sorted_keys, sorted_values = jax.jit(sort_by_bounded_key, static_argnames="key_bound")(keys, values, key_bound=key_bound)
+    order = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(sorted_keys, keys[order])
+    np.testing.assert_array_equal(sorted_values, values[order])

@@ -58,6 +58,7 @@ triangles (the snap entering as a constant, so gradients are those of the float 
 
 from __future__ import annotations
 
+import functools
 import typing
 
 import jax
@@ -65,20 +66,22 @@ import jax.numpy as jnp
 
 
 class TriangleSetup(typing.NamedTuple):
-    """Per-triangle coverage data, F triangles.
+    """Per-triangle coverage data of F triangles, component-major: the triangle axis comes last, so that
+    per-triangle arithmetic and gathers (``setup.edges[i, j][tri]``) run over contiguous [F] rows (trailing
+    axes of 3 vectorise poorly on CPUs: at 100k triangles the setup took 25 ms with [F, 3, k] arrays).
 
-    ``edges`` float32 [F, 3, 3] and ``edge_origin`` float32 [F, 3, 2]: edge i is
-    ``E_i(x, y) = a (x - x_r) + b (y - y_r) + c`` for ``(a, b, c) = edges[:, i]`` and
-    ``(x_r, y_r) = edge_origin[:, i]``, oriented so that inside is >= 0;
-    ``owns_edge`` bool [F, 3]: whether pixel centres exactly on edge i belong to this triangle
-    (top-left rule); ``depth_coef`` float32 [F, 3]: window depth = 0.5 + Σ_i E_i depth_coef_i;
+    ``edges`` float32 [3, 3, F] and ``edge_origin`` float32 [3, 2, F]: edge i is
+    ``E_i(x, y) = a (x - x_r) + b (y - y_r) + c`` for ``(a, b, c) = edges[i]`` and
+    ``(x_r, y_r) = edge_origin[i]``, oriented so that inside is >= 0;
+    ``owns_edge`` bool [3, F]: whether pixel centres exactly on edge i belong to this triangle
+    (top-left rule); ``depth_coef`` float32 [3, F]: window depth = 0.5 + Σ_i E_i depth_coef[i];
     ``visible`` bool [F]: not culled (not degenerate, not back-facing when culling, not wholly
-    outside one clip plane); ``finite`` bool [F]: all vertex coordinates finite; ``bbox`` float32 [F, 4]: conservative pixel bounding box
-    (xmin, ymin, xmax, ymax) of the part of the triangle inside the near and far planes.
-    ``snapped`` bool [F]: coverage from the exact integer edges (module docstring); ``fixed`` int32
-    [F, 3, 2]: the snapped vertices (X, Y) in 1/256 pixel; ``fixed_edges`` int32 [F, 3, 2]: edge i's
-    (b, a) = (X_{i+2} − X_{i+1}, −(Y_{i+2} − Y_{i+1})) times the orientation, so inside is E ≥ 0;
-    ``plane`` float32 [F, 3]: window depth z_0, ∂z/∂x, ∂z/∂y of a snapped triangle (per pixel, from
+    outside one clip plane); ``finite`` bool [F]: all vertex coordinates finite; ``bbox`` float32 [4, F]:
+    conservative pixel bounding box (xmin, ymin, xmax, ymax) of the part of the triangle inside the near
+    and far planes. ``snapped`` bool [F]: coverage from the exact integer edges (module docstring);
+    ``fixed`` int32 [3, 2, F]: the snapped vertices (X, Y) in 1/256 pixel; ``fixed_edges`` int32 [3, 2, F]:
+    edge i's (b, a) = (X_{i+2} − X_{i+1}, −(Y_{i+2} − Y_{i+1})) times the orientation, so inside is E ≥ 0;
+    ``plane`` float32 [3, F]: window depth z_0, ∂z/∂x, ∂z/∂y of a snapped triangle (per pixel, from
     vertex 0).
     """
 
@@ -128,57 +131,59 @@ def sample_offsets(*, samples: int) -> tuple[jax.Array, jax.Array]:
 def setup_triangles(clip: jax.Array, faces: jax.Array, *, resolution: tuple[int, int], cull_backfaces: bool) -> TriangleSetup:
     """Triangle setup for clip-space vertices ``clip`` float32 [V, 4] and ``faces`` int32 [F, 3]."""
     height, width = resolution
-    c = clip[faces]  # [F, 3, 4]
-    x, y, z, w = c[..., 0], c[..., 1], c[..., 2], c[..., 3]
+    c = clip.T[:, faces.T]  # [4, 3, F]: component, vertex, triangle
+    x, y, z, w = c
     snapped, fixed, fixed_edges, fixed_owns, area_sign, plane = _snap(c, width, height)
-    v = pixel_homogeneous(c, width, height)  # [F, 3, 3]
+    v = pixel_homogeneous(c, width, height, axis=0)  # [3 (X', Y', W), 3 vertices, F]
     # Snapped triangles are interpolated on their snapped positions, w · (X/256, Y/256, 1). The snap
     # has zero derivative, so it enters as a constant offset: gradients stay those of the float positions.
-    snap_offset = fixed.astype(jnp.float32) / (1 << SUBPIXEL_BITS) * w[..., None] - v[..., :2]
-    snap_offset = jnp.where(snapped[:, None, None], jax.lax.stop_gradient(snap_offset), 0.0)
-    v = v + jnp.pad(snap_offset, ((0, 0), (0, 0), (0, 1)))
+    snap_offset = jnp.stack([fixed[:, k].astype(jnp.float32) / (1 << SUBPIXEL_BITS) * w - v[k] for k in (0, 1)])
+    snap_offset = jnp.where(snapped, jax.lax.stop_gradient(snap_offset), 0.0)
+    v = jnp.concatenate([v[:2] + snap_offset, v[2:]])
     v1 = jnp.roll(v, -1, axis=1)
     v2 = jnp.roll(v, -2, axis=1)
     # Edge i (opposite vertex i) from its endpoints in a canonical order, so that the two triangles
     # sharing an edge compute bit-identical coefficients up to an exact sign flip, whatever the
     # compiler does with the products (e.g. fused multiply-adds).
-    ordered = _lexicographic_less(v1, v2)
-    lo = jnp.where(ordered[..., None], v1, v2)
-    hi = jnp.where(ordered[..., None], v2, v1)
-    edges = jnp.cross(lo, hi) * jnp.where(ordered, 1.0, -1.0)[..., None]
-    det = jnp.sum(v[:, 0] * edges[:, 0], axis=-1)
+    ordered = _lexicographic_less(v1, v2)  # [3 edges, F]
+    lo = jnp.where(ordered, v1, v2)
+    hi = jnp.where(ordered, v2, v1)
+    sign = jnp.where(ordered, 1.0, -1.0)
+    cross = [lo[1] * hi[2] - lo[2] * hi[1], lo[2] * hi[0] - lo[0] * hi[2], lo[0] * hi[1] - lo[1] * hi[0]]
+    edges = [e * sign for e in cross]  # (a, b, c) of the three edges, [3 edges, F] each
+    det = v[0, 0] * edges[0][0] + v[1, 0] * edges[1][0] + v[2, 0] * edges[2][0]
     orientation = jnp.where(det < 0, -1.0, 1.0)
-    edges = edges * orientation[:, None, None]
-    a, b = edges[..., 0], edges[..., 1]
+    a, b, c_edge = (e * orientation for e in edges)
     owns_edge = (a > 0) | ((a == 0) & (b > 0))
-    origin, residual = _edge_origins(lo, hi, edges[..., 2])
+    origin, residual = _edge_origins(lo, hi, c_edge)
     abs_det = jnp.abs(det)
-    depth_coef = 0.5 * z / jnp.where(abs_det > 0, abs_det, 1.0)[:, None]
+    depth_coef = 0.5 * z / jnp.where(abs_det > 0, abs_det, 1.0)
 
     outside_one_plane = (
-        jnp.all(x > w, axis=1) | jnp.all(x < -w, axis=1) | jnp.all(y > w, axis=1) | jnp.all(y < -w, axis=1)
-        | jnp.all(z > w, axis=1) | jnp.all(z < -w, axis=1)
+        jnp.all(x > w, axis=0) | jnp.all(x < -w, axis=0) | jnp.all(y > w, axis=0) | jnp.all(y < -w, axis=0)
+        | jnp.all(z > w, axis=0) | jnp.all(z < -w, axis=0)
     )
-    finite = jnp.all(jnp.isfinite(c), axis=(1, 2))
+    finite = jnp.all(jnp.isfinite(c), axis=(0, 1))
     # Repeated vertex indices mean zero area; rounding (fused products) could make det tiny, not 0.
     distinct = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 2] != faces[:, 0])
     area_sign = jnp.where(snapped, area_sign, jnp.sign(det).astype(jnp.int32))
-    owns_edge = jnp.where(snapped[:, None], fixed_owns, owns_edge)
+    owns_edge = jnp.where(snapped, fixed_owns, owns_edge)
     visible = (area_sign != 0) & distinct & ~outside_one_plane & finite
     if cull_backfaces:
         visible &= area_sign < 0
-    edges = jnp.stack([a, b, residual], axis=-1)
+    edges = jnp.stack([a, b, residual], axis=1)  # [3 edges, 3, F]
     # Materialised: otherwise XLA fuses the whole setup into the kernel of the first reduction over
     # triangles (a counter), which runs it with little parallelism (145 µs for 16k triangles on an H200).
     return jax.lax.optimization_barrier(TriangleSetup(edges, origin, owns_edge, depth_coef, visible, finite,
                                                       _clipped_bbox(c, width, height), snapped, fixed, fixed_edges, plane))
 
 
-def pixel_homogeneous(clip: jax.Array, width: int, height: int) -> jax.Array:
-    """Clip-space positions [..., 4] → 2D homogeneous pixel coordinates (X', Y', W) [..., 3] (module
-    docstring): X' = (X + W) width / 2, Y' = (W − Y) height / 2, rows down."""
-    x, y, w = clip[..., 0], clip[..., 1], clip[..., 3]
-    return jnp.stack([(x + w) * (0.5 * width), (w - y) * (0.5 * height), w], axis=-1)
+def pixel_homogeneous(clip: jax.Array, width: int, height: int, *, axis: int = -1) -> jax.Array:
+    """Clip-space positions (X, Y, Z, W) along ``axis`` of ``clip`` → 2D homogeneous pixel coordinates
+    (X', Y', W) along that axis (module docstring): X' = (X + W) width / 2, Y' = (W − Y) height / 2, rows
+    down. E.g. [..., 4] → [..., 3], or [4, ...] → [3, ...] with ``axis=0``."""
+    x, y, w = (jnp.take(clip, k, axis=axis) for k in (0, 1, 3))
+    return jnp.stack([(x + w) * (0.5 * width), (w - y) * (0.5 * height), w], axis=axis)
 
 
 def _split(f):
@@ -212,20 +217,22 @@ def exact_sign(a, x, b, y):
     return jnp.where(q != 0, jnp.sign(q), (r > 0).astype(jnp.int32))
 
 
-def edge_thresholds(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array) -> jax.Array:
-    """Integer thresholds k int32 [..., 3] of snapped triangles ``tri`` (valid indices, shape [...]) at base
-    points (``base_x``, ``base_y``) int32, in 1/16 pixel, broadcastable to [...].
+def edge_thresholds(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array) -> list:
+    """Integer thresholds k of snapped triangles ``tri`` (valid indices, shape [...]) at base points
+    (``base_x``, ``base_y``) int32, in 1/16 pixel, broadcastable to [...]: a list of three int32 arrays
+    [...], one per edge.
 
     A sample at base + (d_x, d_y) (1/16 pixel, |d| ≤ 64) is inside edge i, top-left rule included, iff
     a_i d_x + b_i d_y ≥ k_i, an int32 comparison. With E_i(base) = 16 q + r (:func:`exact_quotient`),
     E_i(sample) = 16 (q + a d_x + b d_y) + r, so the sample is inside (E > 0, or E = 0 on an owned
     edge) iff q + a d_x + b d_y ≥ t with t = 0 where r > 0 or the edge is owned, else 1. |a d_x + b d_y|
     < 2^30, so a clamped q still decides alone."""
-    fixed, fixed_edges = setup.fixed[tri], setup.fixed_edges[tri]
-    origin = jnp.roll(fixed, -1, axis=-2)  # edge i starts at vertex i + 1
-    to_fixed = lambda p: (jnp.asarray(p, jnp.int32) << (SUBPIXEL_BITS - 4))[..., None]
-    return edge_threshold(fixed_edges[..., 1], to_fixed(base_x) - origin[..., 0], fixed_edges[..., 0],
-                          to_fixed(base_y) - origin[..., 1], setup.owns_edge[tri])
+    to_fixed = lambda p: jnp.asarray(p, jnp.int32) << (SUBPIXEL_BITS - 4)
+    at = lambda field, *index: field[index][tri]
+    # Edge i starts at vertex i + 1.
+    return [edge_threshold(at(setup.fixed_edges, i, 1), to_fixed(base_x) - at(setup.fixed, (i + 1) % 3, 0),
+                           at(setup.fixed_edges, i, 0), to_fixed(base_y) - at(setup.fixed, (i + 1) % 3, 1),
+                           at(setup.owns_edge, i)) for i in range(3)]
 
 
 def edge_threshold(a, x, b, y, owns):
@@ -238,50 +245,50 @@ def edge_threshold(a, x, b, y, owns):
 
 
 def _snap(c: jax.Array, width: int, height: int):
-    """Snapped triangles (module docstring) of clip-space corners ``c`` [F, 3, 4]: ``(snapped [F],
-    fixed int32 [F, 3, 2], fixed_edges int32 [F, 3, 2], owns_edge bool [F, 3], area_sign int32 [F],
-    plane float32 [F, 3])``; the last five are meaningful where ``snapped``."""
-    x, y, z, w = c[..., 0], c[..., 1], c[..., 2], c[..., 3]
-    in_front = jnp.all(w > 0, axis=1)
+    """Snapped triangles (module docstring) of clip-space corners ``c`` [4 (X, Y, Z, W), 3 vertices, F]:
+    ``(snapped [F], fixed int32 [3, 2, F], fixed_edges int32 [3, 2, F], owns_edge bool [3, F], area_sign
+    int32 [F], plane float32 [3, F])`` (:class:`TriangleSetup`'s layouts); the last five are meaningful
+    where ``snapped``."""
+    x, y, z, w = c
+    in_front = jnp.all(w > 0, axis=0)
     inv_w = 1.0 / jnp.where(w > 0, w, 1.0)
     x_w = (x * inv_w) * (0.5 * width) + 0.5 * width
     y_gl = (y * inv_w) * (0.5 * height) + 0.5 * height
-    inside = jnp.all((jnp.abs(x_w) < GUARD_BAND) & (jnp.abs(y_gl) < GUARD_BAND), axis=1)
+    inside = jnp.all((jnp.abs(x_w) < GUARD_BAND) & (jnp.abs(y_gl) < GUARD_BAND), axis=0)
     # Larger images would take the factors of the exact products past 2^23.
-    snapped = in_front & inside & jnp.all(jnp.isfinite(c), axis=(1, 2)) & (max(width, height) <= _SNAP_RESOLUTION)
+    snapped = in_front & inside & jnp.all(jnp.isfinite(c), axis=(0, 1)) & (max(width, height) <= _SNAP_RESOLUTION)
     scale = float(1 << SUBPIXEL_BITS)
-    to_fixed = lambda v: jnp.round(jnp.where(snapped[:, None], v, 0.0) * scale).astype(jnp.int32)
-    fixed = jnp.stack([to_fixed(x_w), (height << SUBPIXEL_BITS) - to_fixed(y_gl)], axis=-1)  # [F, 3, 2]
-    v1, v2 = jnp.roll(fixed, -1, axis=1), jnp.roll(fixed, -2, axis=1)
-    b, a = v2[..., 0] - v1[..., 0], v1[..., 1] - v2[..., 1]  # E = b (P_y − Y_1) + a (P_x − X_1)
-    offset = fixed[:, 0] - v1[:, 0]  # vertex 0 from edge 0's origin
-    area_sign = exact_sign(a[:, 0], offset[:, 0], b[:, 0], offset[:, 1])
-    orientation = jnp.where(area_sign < 0, -1, 1)[:, None]
+    to_fixed = lambda v: jnp.round(jnp.where(snapped, v, 0.0) * scale).astype(jnp.int32)
+    fixed = jnp.stack([to_fixed(x_w), (height << SUBPIXEL_BITS) - to_fixed(y_gl)], axis=1)  # [3, 2, F]
+    v1, v2 = jnp.roll(fixed, -1, axis=0), jnp.roll(fixed, -2, axis=0)
+    b, a = v2[:, 0] - v1[:, 0], v1[:, 1] - v2[:, 1]  # E = b (P_y − Y_1) + a (P_x − X_1), [3 edges, F]
+    offset = fixed[0] - v1[0]  # vertex 0 from edge 0's origin
+    area_sign = exact_sign(a[0], offset[0], b[0], offset[1])
+    orientation = jnp.where(area_sign < 0, -1, 1)
     a, b = a * orientation, b * orientation
     owns = (a > 0) | ((a == 0) & (b > 0))  # top-left rule (y down): inward normal (a, b) right, or down
     # Window depth as an affine function of the image from the snapped vertices (Cramer's rule).
     z_w = 0.5 * (z * inv_w) + 0.5
     position = fixed.astype(jnp.float32) / scale
-    dx1, dy1 = position[:, 1, 0] - position[:, 0, 0], position[:, 1, 1] - position[:, 0, 1]
-    dx2, dy2 = position[:, 2, 0] - position[:, 0, 0], position[:, 2, 1] - position[:, 0, 1]
-    dz1, dz2 = z_w[:, 1] - z_w[:, 0], z_w[:, 2] - z_w[:, 0]
+    dx1, dy1 = position[1, 0] - position[0, 0], position[1, 1] - position[0, 1]
+    dx2, dy2 = position[2, 0] - position[0, 0], position[2, 1] - position[0, 1]
+    dz1, dz2 = z_w[1] - z_w[0], z_w[2] - z_w[0]
     area = dx1 * dy2 - dx2 * dy1
     safe = jnp.where(area != 0, area, 1.0)
-    plane = jnp.stack([z_w[:, 0], (dz1 * dy2 - dz2 * dy1) / safe, (dx1 * dz2 - dx2 * dz1) / safe], axis=-1)
-    return snapped, fixed, jnp.stack([b, a], axis=-1), owns, area_sign, plane
+    plane = jnp.stack([z_w[0], (dz1 * dy2 - dz2 * dy1) / safe, (dx1 * dz2 - dx2 * dz1) / safe])
+    return snapped, fixed, jnp.stack([b, a], axis=1), owns, area_sign, plane
 
 
 def _lexicographic_less(p: jax.Array, q: jax.Array) -> jax.Array:
-    """Whether vectors p [..., 3] come before q [..., 3] in lexicographic order."""
-    return (p[..., 0] < q[..., 0]) | (
-        (p[..., 0] == q[..., 0]) & ((p[..., 1] < q[..., 1]) | ((p[..., 1] == q[..., 1]) & (p[..., 2] < q[..., 2])))
-    )
+    """Whether vectors p [3, ...] come before q [3, ...] (components first) in lexicographic order: bool [...]."""
+    return (p[0] < q[0]) | ((p[0] == q[0]) & ((p[1] < q[1]) | ((p[1] == q[1]) & (p[2] < q[2]))))
 
 
 def _edge_origins(v1: jax.Array, v2: jax.Array, c: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Origin (x_r, y_r) [F, 3, 2] and residual constant [F, 3] of each edge function.
+    """Origin (x_r, y_r) [3 edges, 2, F] and residual constant [3 edges, F] of each edge function.
 
-    ``v1``, ``v2`` [F, 3, 3] are each edge's endpoints in canonical (lexicographic) order.
+    ``v1``, ``v2`` [3 (X', Y', W), 3 edges, F] are each edge's endpoints in canonical (lexicographic)
+    order; ``c`` [3 edges, F] the edges' homogeneous constant terms.
 
     ``E(p) = a (x - x_r) + b (y - y_r) + residual``, with (x_r, y_r) the projection of one endpoint in
     front of the eye, where E vanishes, so the residual is 0. Both triangles sharing an edge pick the
@@ -290,60 +297,55 @@ def _edge_origins(v1: jax.Array, v2: jax.Array, c: jax.Array) -> tuple[jax.Array
     constant term, so vertices and edges lying exactly on pixel centres give E = 0 exactly. Edges with
     no endpoint in front of the eye keep the homogeneous constant term ``c``.
     """
-    in_front_1, in_front_2 = v1[..., 2] > 0, v2[..., 2] > 0
-    ref = jnp.where((in_front_1 | ~in_front_2)[..., None], v1, v2)
+    in_front_1, in_front_2 = v1[2] > 0, v2[2] > 0
+    ref = jnp.where(in_front_1 | ~in_front_2, v1, v2)
     has_origin = in_front_1 | in_front_2
-    w = jnp.where(has_origin, ref[..., 2], 1.0)[..., None]
-    origin = jnp.where(has_origin[..., None], ref[..., :2] / w, 0.0)
-    return origin, jnp.where(has_origin, 0.0, c)
+    w = jnp.where(has_origin, ref[2], 1.0)
+    origin = jnp.where(has_origin, ref[:2] / w, 0.0)  # [2, 3 edges, F]
+    return jnp.swapaxes(origin, 0, 1), jnp.where(has_origin, 0.0, c)
 
 
 def _clipped_bbox(c: jax.Array, width: int, height: int) -> jax.Array:
-    """Pixel bbox [F, 4] of each triangle clipped to -W <= Z <= W, clamped to the viewport.
+    """Pixel bbox [4 (xmin, ymin, xmax, ymax), F] of each triangle (corners ``c`` [4, 3, F]) clipped to
+    -W <= Z <= W, clamped to the viewport.
 
     The clipped polygon's vertices are among the triangle's vertices inside both planes and the
     points where its edges cross one plane while inside the other; a triangle with none is empty.
     """
-    near_d = c[..., 2] + c[..., 3]  # >= 0 in front of the near plane
-    far_d = c[..., 3] - c[..., 2]  # >= 0 before the far plane
-    candidates = [c]
-    masks = [(near_d >= 0) & (far_d >= 0)]
+    near_d = c[2] + c[3]  # >= 0 in front of the near plane, [3, F]
+    far_d = c[3] - c[2]  # >= 0 before the far plane
+    candidates = [(c, (near_d >= 0) & (far_d >= 0))]
     c_next = jnp.roll(c, -1, axis=1)
     for d, other in ((near_d, far_d), (far_d, near_d)):
-        d_next = jnp.roll(d, -1, axis=1)
-        other_next = jnp.roll(other, -1, axis=1)
+        d_next = jnp.roll(d, -1, axis=0)
+        other_next = jnp.roll(other, -1, axis=0)
         crosses = (d >= 0) != (d_next >= 0)
         t = d / jnp.where(crosses, d - d_next, 1.0)
-        point = c + t[..., None] * (c_next - c)
-        candidates.append(point)
-        masks.append(crosses & (other + t * (other_next - other) >= 0))
-    points = jnp.concatenate(candidates, axis=1)  # [F, 9, 4]
-    valid = jnp.concatenate(masks, axis=1) & (points[..., 3] > 0)
-    inv_w = 1.0 / jnp.where(valid, points[..., 3], 1.0)
-    px = (points[..., 0] * inv_w + 1.0) * (0.5 * width)
-    py = (1.0 - points[..., 1] * inv_w) * (0.5 * height)
+        candidates.append((c + t * (c_next - c), crosses & (other + t * (other_next - other) >= 0)))
+    # A running minimum and maximum over the 9 candidate rows: one elementwise pass over [F], where a
+    # reduction over a stacked [9, F] array cost 4× more on CPUs.
     big = jnp.float32(3.0e38)
-    bbox = jnp.stack(
-        [
-            jnp.min(jnp.where(valid, px, big), axis=1),
-            jnp.min(jnp.where(valid, py, big), axis=1),
-            jnp.max(jnp.where(valid, px, -big), axis=1),
-            jnp.max(jnp.where(valid, py, -big), axis=1),
-        ],
-        axis=-1,
-    )
+    lo_x = lo_y = big
+    hi_x = hi_y = -big
+    for points, mask in candidates:
+        valid = mask & (points[3] > 0)
+        inv_w = 1.0 / jnp.where(valid, points[3], 1.0)
+        px = (points[0] * inv_w + 1.0) * (0.5 * width)
+        py = (1.0 - points[1] * inv_w) * (0.5 * height)
+        for k in range(3):
+            lo_x, hi_x = jnp.minimum(lo_x, jnp.where(valid[k], px[k], big)), jnp.maximum(hi_x, jnp.where(valid[k], px[k], -big))
+            lo_y, hi_y = jnp.minimum(lo_y, jnp.where(valid[k], py[k], big)), jnp.maximum(hi_y, jnp.where(valid[k], py[k], -big))
+    bbox = jnp.stack([lo_x, lo_y, hi_x, hi_y])
     # Projection rounding is far below a pixel; one pixel of margin keeps the box conservative.
-    margin = jnp.array([-1.0, -1.0, 1.0, 1.0], jnp.float32)
-    limit_lo = jnp.array([0.0, 0.0, 0.0, 0.0], jnp.float32)
-    limit_hi = jnp.array([width, height, width, height], jnp.float32)
-    return jnp.clip(bbox + margin, limit_lo, limit_hi)
+    margin = jnp.array([-1.0, -1.0, 1.0, 1.0], jnp.float32)[:, None]
+    limit_hi = jnp.array([width, height, width, height], jnp.float32)[:, None]
+    return jnp.clip(bbox + margin, 0.0, limit_hi)
 
 
 def plane_origin(setup: TriangleSetup, tri: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Pixel position ``(x_0, y_0)`` (float32, shape of ``tri``) of the snapped vertex 0 from which the
     depth plane ``setup.plane`` of triangles ``tri`` (valid indices) is measured; exact in float32."""
-    vertex = setup.fixed[tri][..., 0, :].astype(jnp.float32) / (1 << SUBPIXEL_BITS)
-    return vertex[..., 0], vertex[..., 1]
+    return tuple(setup.fixed[0, k][tri].astype(jnp.float32) / (1 << SUBPIXEL_BITS) for k in (0, 1))
 
 
 def _exact_products(slope: jax.Array, offset: jax.Array) -> jax.Array:
@@ -362,7 +364,7 @@ def _exact_products(slope: jax.Array, offset: jax.Array) -> jax.Array:
 
 
 def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array, offset_x: jax.Array,
-             offset_y: jax.Array) -> tuple[jax.Array, jax.Array]:
+             offset_y: jax.Array, *, with_float: bool | None = None) -> tuple[jax.Array, jax.Array]:
     """Coverage and window depth of triangles ``tri`` at the samples base + offset.
 
     ``tri`` int32 [...A] (entries outside [0, F) are never covered); ``base_x``, ``base_y`` int32,
@@ -372,6 +374,10 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     depth float32 [...A, ...D])``. The result at a sample does not depend on the base it is measured from:
     snapped triangles' coverage is exact (:func:`edge_thresholds`), and every depth and float edge is
     evaluated at the sample's absolute position.
+
+    ``with_float`` (static): whether triangles that are not snapped are tested too (the float edges);
+    None decides at run time (:func:`needs_float_test`). With False such triangles are never covered,
+    so a caller passes False only where :func:`needs_float_test` is False.
     """
     valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
     t = jnp.where(valid_index, tri, 0)
@@ -380,38 +386,45 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     shape = jnp.broadcast_shapes(t.shape, jnp.shape(base_x), jnp.shape(base_y))
     base_x, base_y = jnp.broadcast_to(base_x, shape), jnp.broadcast_to(base_y, shape)
     t = jnp.broadcast_to(t, shape)
-    # Snapped triangles: exact integer edges, one threshold per base and an int32 product per sample.
-    k = edge_thresholds(setup, t, base_x, base_y)
-    step = setup.fixed_edges[t]  # (b, a) of each edge, [...A, 3, 2]
-    exact = [step[..., i, 1][trailing] * offset_x + step[..., i, 0][trailing] * offset_y >= k[..., i][trailing]
-             for i in range(3)]
-    sample_x = ((base_x[trailing] + offset_x) << (SUBPIXEL_BITS - 4))  # 1/256 pixel
-    sample_y = ((base_y[trailing] + offset_y) << (SUBPIXEL_BITS - 4))
-    vertex = setup.fixed[t][..., 0, :]
-    plane = setup.plane[t]
-    at = lambda q, *index: q[(...,) + index][trailing]  # a per-triangle entry [...A] → [...A, 1...]
-    affine = affine_depth([at(plane, i) for i in range(3)], sample_x - vertex[..., 0][trailing],
-                          sample_y - vertex[..., 1][trailing])
-
     visible = valid_index & setup.visible[t]
     snapped = setup.snapped[t]
-    full = jnp.broadcast_shapes(affine.shape, visible[trailing].shape)
+    at = lambda field, *index: field[index][t][trailing]  # a per-triangle entry [...A, 1...]
 
-    def homogeneous():
-        """Other triangles: the float edges and homogeneous depth at the samples (exact in float32)."""
-        px, py = sample_x.astype(jnp.float32) / 256, sample_y.astype(jnp.float32) / 256
-        e, o, owns, coef = setup.edges[t], setup.edge_origin[t], setup.owns_edge[t], setup.depth_coef[t]
-        inside, depth = homogeneous_coverage([[at(e, i, j) for j in range(3)] for i in range(3)],
-                                             [[at(o, i, j) for j in range(2)] for i in range(3)],
-                                             [at(owns, i) for i in range(3)], [at(coef, i) for i in range(3)], px, py)
-        return jnp.broadcast_to(inside, full), jnp.broadcast_to(depth, full)
+    def decide(with_float: bool):
+        """(covered, depth) from the exact test, and the float one too ``with_float``."""
+        sample_x = ((base_x[trailing] + offset_x) << (SUBPIXEL_BITS - 4))  # 1/256 pixel
+        sample_y = ((base_y[trailing] + offset_y) << (SUBPIXEL_BITS - 4))
+        # Snapped triangles: exact integer edges, one threshold per base and an int32 product per sample.
+        k = edge_thresholds(setup, t, base_x, base_y)
+        exact = [at(setup.fixed_edges, i, 1) * offset_x + at(setup.fixed_edges, i, 0) * offset_y >= k[i][trailing]
+                 for i in range(3)]
+        affine = affine_depth([at(setup.plane, i) for i in range(3)], sample_x - at(setup.fixed, 0, 0),
+                              sample_y - at(setup.fixed, 0, 1))
+        float_inside, float_depth = False, 0.0
+        if with_float:  # other triangles: the float edges and homogeneous depth at the samples
+            px, py = sample_x.astype(jnp.float32) / 256, sample_y.astype(jnp.float32) / 256
+            float_inside, float_depth = homogeneous_coverage(
+                [[at(setup.edges, i, j) for j in range(3)] for i in range(3)],
+                [[at(setup.edge_origin, i, j) for j in range(2)] for i in range(3)],
+                [at(setup.owns_edge, i) for i in range(3)], [at(setup.depth_coef, i) for i in range(3)], px, py)
+        covered, depth = select_coverage(visible[trailing], snapped[trailing], exact[0] & exact[1] & exact[2], affine,
+                                         float_inside, float_depth)
+        full = jnp.broadcast_shapes(covered.shape, depth.shape)
+        return jnp.broadcast_to(covered, full), jnp.broadcast_to(depth, full)
 
+    if with_float is not None:
+        return decide(with_float)
     # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
-    # unless the caller vmaps).
-    float_inside, float_depth = jax.lax.cond(
-        jnp.any(visible & ~snapped), homogeneous, lambda: (jnp.zeros(full, bool), jnp.zeros(full, jnp.float32)))
-    return select_coverage(visible[trailing], snapped[trailing], exact[0] & exact[1] & exact[2], affine,
-                           float_inside, float_depth)
+    # unless the caller vmaps). Each branch decides whole, so no placeholder arrays are materialised.
+    return jax.lax.cond(needs_float_test(setup, tri), functools.partial(decide, True), functools.partial(decide, False))
+
+
+def needs_float_test(setup: TriangleSetup, tri: jax.Array) -> jax.Array:
+    """Whether any of triangles ``tri`` (int32, any shape; entries outside [0, F) ignored) is visible and
+    not snapped, so that :func:`evaluate` needs its float test: a bool scalar."""
+    valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
+    t = jnp.where(valid_index, tri, 0)
+    return jnp.any(valid_index & setup.visible[t] & ~setup.snapped[t])
 
 
 def select_coverage(visible, snapped, exact_inside, affine, float_inside, float_depth):
@@ -458,9 +471,8 @@ def barycentrics(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Ar
     pixel step right (``x``) and down (``y``). Zero where ``tri`` is -1.
     """
     t = jnp.where(tri >= 0, tri, 0)
-    # One gather per scalar and per-edge arrays: trailing axes of 3 vectorise poorly on CPUs (3× slower).
-    e = [[setup.edges[:, i, j][t] for j in range(3)] for i in range(3)]
-    o = [[setup.edge_origin[:, i, j][t] for j in range(2)] for i in range(3)]
+    e = [[setup.edges[i, j][t] for j in range(3)] for i in range(3)]
+    o = [[setup.edge_origin[i, j][t] for j in range(2)] for i in range(3)]
     values = [e[i][0] * (px - o[i][0]) + e[i][1] * (py - o[i][1]) + e[i][2] for i in range(3)]
     total = values[0] + values[1] + values[2]
     safe = jnp.where(total != 0, total, 1.0)

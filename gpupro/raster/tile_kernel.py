@@ -54,15 +54,15 @@ def _triangle_fields(setup: TriangleSetup) -> dict:
     """The per-triangle data the kernel reads, one flat [F] array per component (bools as int32)."""
     fields = {"visible": setup.visible.astype(jnp.int32), "snapped": setup.snapped.astype(jnp.int32)}
     for i in range(3):
-        fields[f"owns{i}"] = setup.owns_edge[:, i].astype(jnp.int32)
-        fields[f"plane{i}"] = setup.plane[:, i]
-        fields[f"coef{i}"] = setup.depth_coef[:, i]
+        fields[f"owns{i}"] = setup.owns_edge[i].astype(jnp.int32)
+        fields[f"plane{i}"] = setup.plane[i]
+        fields[f"coef{i}"] = setup.depth_coef[i]
         for j in range(2):
-            fields[f"fixed{i}{j}"] = setup.fixed[:, i, j]
-            fields[f"step{i}{j}"] = setup.fixed_edges[:, i, j]
-            fields[f"origin{i}{j}"] = setup.edge_origin[:, i, j]
+            fields[f"fixed{i}{j}"] = setup.fixed[i, j]
+            fields[f"step{i}{j}"] = setup.fixed_edges[i, j]
+            fields[f"origin{i}{j}"] = setup.edge_origin[i, j]
         for j in range(3):
-            fields[f"edge{i}{j}"] = setup.edges[:, i, j]
+            fields[f"edge{i}{j}"] = setup.edges[i, j]
     return fields
 
 

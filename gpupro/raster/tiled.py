@@ -45,13 +45,25 @@ from gpupro.raster.setup import (
     TriangleSetup,
     above_floor,
     evaluate,
+    needs_float_test,
     plane_origin,
     sample_offsets,
 )
 from gpupro.raster.tile_kernel import resolve_tiles
+from gpupro.sort import sort_by_bounded_key
 
 SNAP_MARGIN = 1.0 / 64
 """Pixels by which the tile test widens a tile: more than snapping moves a vertex (√2/512)."""
+
+
+SLOT_BITS = 2
+GROUP_SLOTS = 1 << SLOT_BITS
+"""Triangles of a chunk resolved together into one key per sample: a covered depth lies in [0, 1], so its
+float32 bits are below 2^30 and ordered like the depths, and (bits << SLOT_BITS) | slot orders
+fragments by (depth, list position) in one uint32. Each group's keys are its one output, so XLA
+evaluates the group's triangles once (two outputs, depth and id, had it evaluate them twice)."""
+NO_KEY = jnp.uint32((1 << 32) - 1)
+"""The key of a sample that no triangle of the group covers (above every key of a depth in [0, 1])."""
 
 
 def default_pair_capacity(num_faces: int, num_tiles: int) -> int:
@@ -73,36 +85,42 @@ def merge_depth(zbuf: jax.Array, ids: jax.Array, where: jax.Array, depth: jax.Ar
 
 
 def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Array, tile: int, samples: int) -> jax.Array:
-    """Whether triangles ``tri`` [P] may cover a sample of the tiles whose corner pixels are (x0, y0)."""
-    e = setup.edges[tri]  # [P, 3, 3]
-    o = setup.edge_origin[tri]  # [P, 3, 2]
+    """Whether triangles ``tri`` [P] may cover a sample of the tiles whose corner pixels are (x0, y0) [P]."""
+    # One gather per scalar field: trailing axes of 3 vectorise poorly on CPUs (at 2^19 pairs this test
+    # took 116 ms with [P, 3, 3] gathers, 7 ms with [P] ones).
+    at = lambda field, *index: field[index][tri]
     # The box of the tile's samples widened by SNAP_MARGIN: the float edges of a snapped triangle come
     # from its snapped vertices up to rounding, so this test against them stays conservative.
     reach = max(abs(v) for offset in SAMPLE_PATTERNS[samples] for v in offset) / 16 + SNAP_MARGIN
-    lo_x, hi_x = (x0 + 0.5 - reach)[:, None], (x0 + tile - 0.5 + reach)[:, None]
-    lo_y, hi_y = (y0 + 0.5 - reach)[:, None], (y0 + tile - 0.5 + reach)[:, None]
-    a, b, c = e[..., 0], e[..., 1], e[..., 2]
-    ax = jnp.stack([a * (lo_x - o[..., 0]), a * (hi_x - o[..., 0])])
-    by = jnp.stack([b * (lo_y - o[..., 1]), b * (hi_y - o[..., 1])])
-    edge_max = jnp.max(ax, axis=0) + jnp.max(by, axis=0) + c
-    # Relative slack: the per-pixel evaluation may round differently (e.g. fused multiply-adds).
-    magnitude = jnp.max(jnp.abs(ax), axis=0) + jnp.max(jnp.abs(by), axis=0) + jnp.abs(c)
-    slack = 1e-5 * magnitude
-    edges_ok = jnp.all(edge_max >= -slack, axis=-1)
-    d = setup.depth_coef[tri]
-    depth_corners = 0.5 + jnp.stack([jnp.sum((ax[i] + by[j] + c) * d, axis=-1) for i in (0, 1) for j in (0, 1)])
-    depth_slack = 1e-5 + 1e-5 * jnp.sum(magnitude * jnp.abs(d), axis=-1)
+    lo_x, hi_x = x0 + 0.5 - reach, x0 + tile - 0.5 + reach
+    lo_y, hi_y = y0 + 0.5 - reach, y0 + tile - 0.5 + reach
+    edges_ok = True
+    corners = [0.0] * 4  # Σ_i E_i depth_coef_i at the box's corners (lo_x, lo_y), (lo_x, hi_y), (hi_x, lo_y), (hi_x, hi_y)
+    depth_slack = 1e-5
+    for i in range(3):
+        a, b, c = at(setup.edges, i, 0), at(setup.edges, i, 1), at(setup.edges, i, 2)
+        ax = (a * (lo_x - at(setup.edge_origin, i, 0)), a * (hi_x - at(setup.edge_origin, i, 0)))
+        by = (b * (lo_y - at(setup.edge_origin, i, 1)), b * (hi_y - at(setup.edge_origin, i, 1)))
+        # Relative slack: the per-pixel evaluation may round differently (e.g. fused multiply-adds).
+        magnitude = jnp.maximum(jnp.abs(ax[0]), jnp.abs(ax[1])) + jnp.maximum(jnp.abs(by[0]), jnp.abs(by[1])) + jnp.abs(c)
+        edges_ok = edges_ok & (jnp.maximum(*ax) + jnp.maximum(*by) + c >= -1e-5 * magnitude)
+        d = at(setup.depth_coef, i)
+        corners = [corners[2 * p + q] + (ax[p] + by[q] + c) * d for p in (0, 1) for q in (0, 1)]
+        depth_slack = depth_slack + 1e-5 * magnitude * jnp.abs(d)
+    homogeneous_lo = 0.5 + functools.reduce(jnp.minimum, corners) - depth_slack
+    homogeneous_hi = 0.5 + functools.reduce(jnp.maximum, corners) + depth_slack
     # Snapped triangles: the depth plane of the snapped vertices, which evaluate() uses (the homogeneous
     # form is ill-conditioned for slivers that snapping widens).
-    plane, (x_0, y_0) = setup.plane[tri], plane_origin(setup, tri)
-    px = jnp.stack([plane[:, 1] * (lo_x[:, 0] - x_0), plane[:, 1] * (hi_x[:, 0] - x_0)])
-    py = jnp.stack([plane[:, 2] * (lo_y[:, 0] - y_0), plane[:, 2] * (hi_y[:, 0] - y_0)])
-    affine_lo = plane[:, 0] + jnp.min(px, axis=0) + jnp.min(py, axis=0)
-    affine_hi = plane[:, 0] + jnp.max(px, axis=0) + jnp.max(py, axis=0)
-    affine_slack = 1e-5 * (jnp.abs(plane[:, 0]) + jnp.max(jnp.abs(px), axis=0) + jnp.max(jnp.abs(py), axis=0))
+    z0, slope_x, slope_y = at(setup.plane, 0), at(setup.plane, 1), at(setup.plane, 2)
+    x_0, y_0 = plane_origin(setup, tri)
+    px = (slope_x * (lo_x - x_0), slope_x * (hi_x - x_0))
+    py = (slope_y * (lo_y - y_0), slope_y * (hi_y - y_0))
+    affine_slack = 1e-5 * (jnp.abs(z0) + jnp.maximum(jnp.abs(px[0]), jnp.abs(px[1])) + jnp.maximum(jnp.abs(py[0]), jnp.abs(py[1])))
+    affine_lo = z0 + jnp.minimum(*px) + jnp.minimum(*py) - affine_slack
+    affine_hi = z0 + jnp.maximum(*px) + jnp.maximum(*py) + affine_slack
     snapped = setup.snapped[tri]
-    lowest = jnp.where(snapped, affine_lo - affine_slack, jnp.min(depth_corners, axis=0) - depth_slack)
-    highest = jnp.where(snapped, affine_hi + affine_slack, jnp.max(depth_corners, axis=0) + depth_slack)
+    lowest = jnp.where(snapped, affine_lo, homogeneous_lo)
+    highest = jnp.where(snapped, affine_hi, homogeneous_hi)
     return edges_ok & (highest >= 0) & (lowest <= 1)
 
 
@@ -139,14 +157,45 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
         position = first[t][:, None] + (g - item_start[t])[:, None] * width + lane[None, :]  # [B, width]
         live = (g < total)[:, None] & (position < counts[t][:, None])
         cand = jnp.where(live, tri_sorted[jnp.minimum(tile_start[t][:, None] + position, tri_sorted.shape[0] - 1)], -1)
-        base_x = (16 * tile * (t % tiles_x))[:, None, None, None] + block_corner  # [B, 1, 1, blocks]
-        base_y = (16 * tile * (t // tiles_x))[:, None, None, None] + block_corner[:, None]  # [B, 1, blocks, 1]
-        covered, depth = evaluate(setup, cand[:, :, None, None], base_x, base_y, offset_x, offset_y)
-        depth = jnp.where(covered, depth, jnp.inf).reshape(cand.shape + (-1,))  # [B, width, T² S]
-        if floor is not None:
-            depth = jnp.where(above_floor(depth, cand[:, :, None], floor[0][t][:, None], floor[1][t][:, None]), depth, jnp.inf)
-        best = jnp.min(depth, axis=1)
-        winner = jnp.min(jnp.where(depth == best[:, None], cand[:, :, None], NO_TRIANGLE), axis=1)
+        base_x = (16 * tile * (t % tiles_x))[:, None, None] + block_corner  # [B, 1, blocks]
+        base_y = (16 * tile * (t // tiles_x))[:, None, None] + block_corner[:, None]  # [B, blocks, 1]
+
+        # Loops over groups and over their triangles on CPUs: XLA then fuses each triangle's evaluation
+        # once (in straight-line code it fused it into several consumers, and compiled 2× longer);
+        # unrolled elsewhere, where each step of a loop is a round trip to the host.
+        unrolled = jax.default_backend() != "cpu"
+        group = min(width, GROUP_SLOTS)
+        groups = -(-width // group)
+        by_group = jnp.pad(cand, ((0, 0), (0, groups * group - width)), constant_values=-1)
+        by_group = by_group.reshape(batch, groups, group).transpose(1, 0, 2)  # [groups, B, group]
+
+        def group_keys(with_float):
+            """Each group's nearest fragment per sample as one uint32 key [groups, B, T² S] (:data:`GROUP_SLOTS`)."""
+            def one_group(_, tri):
+                def one_slot(j, key):
+                    covered, depth = evaluate(setup, tri[:, j, None, None], base_x, base_y, offset_x, offset_y,
+                                              with_float=with_float)
+                    covered, depth = covered.reshape(batch, -1), depth.reshape(batch, -1)
+                    if floor is not None:
+                        covered &= above_floor(depth, tri[:, j, None], floor[0][t], floor[1][t])
+                    bits = jax.lax.bitcast_convert_type(depth, jnp.uint32)
+                    return jnp.minimum(key, jnp.where(covered, (bits << SLOT_BITS) | j.astype(jnp.uint32), NO_KEY))
+                key = jnp.full((batch, tile * tile * samples), NO_KEY, jnp.uint32)
+                return None, jax.lax.fori_loop(0, group, one_slot, key, unroll=group if unrolled else 1)
+            return jax.lax.scan(one_group, None, by_group, unroll=groups if unrolled else 1)[1]
+
+        keys = jax.lax.cond(needs_float_test(setup, cand), functools.partial(group_keys, True),
+                            functools.partial(group_keys, False))
+        # The groups in list order: a strictly nearer depth replaces, so ties keep the earlier, lower id.
+        best_bits = jnp.full((batch, tile * tile * samples), NO_KEY >> SLOT_BITS, jnp.uint32)
+        winner = jnp.full((batch, tile * tile * samples), NO_TRIANGLE, jnp.int32)
+        for k in range(groups):
+            bits = keys[k] >> SLOT_BITS
+            slot = k * group + (keys[k] & ((1 << SLOT_BITS) - 1)).astype(jnp.int32)
+            closer = bits < best_bits
+            best_bits = jnp.where(closer, bits, best_bits)
+            winner = jnp.where(closer, jnp.take_along_axis(cand, slot, axis=1), winner)
+        best = jnp.where(best_bits < NO_KEY >> SLOT_BITS, jax.lax.bitcast_convert_type(best_bits, jnp.float32), jnp.inf)
         zbuf, ids = merge_depth(zbuf, ids, jnp.where(g < total, t, num_tiles), best, winner)
         return head + batch, zbuf, ids
 
@@ -239,12 +288,12 @@ def rasterize_tiled(
 
     # Tile range of each triangle's bounding box (pixel centres at half-integers).
     bbox = setup.bbox
-    tx0 = jnp.clip(jnp.floor((bbox[:, 0] - 0.5) / tile), 0, tiles_x - 1).astype(jnp.int32)
-    ty0 = jnp.clip(jnp.floor((bbox[:, 1] - 0.5) / tile), 0, tiles_y - 1).astype(jnp.int32)
-    tx1 = jnp.clip(jnp.floor((bbox[:, 2] - 0.5) / tile), 0, tiles_x - 1).astype(jnp.int32)
-    ty1 = jnp.clip(jnp.floor((bbox[:, 3] - 0.5) / tile), 0, tiles_y - 1).astype(jnp.int32)
+    tx0 = jnp.clip(jnp.floor((bbox[0] - 0.5) / tile), 0, tiles_x - 1).astype(jnp.int32)
+    ty0 = jnp.clip(jnp.floor((bbox[1] - 0.5) / tile), 0, tiles_y - 1).astype(jnp.int32)
+    tx1 = jnp.clip(jnp.floor((bbox[2] - 0.5) / tile), 0, tiles_x - 1).astype(jnp.int32)
+    ty1 = jnp.clip(jnp.floor((bbox[3] - 0.5) / tile), 0, tiles_y - 1).astype(jnp.int32)
     span_x = tx1 - tx0 + 1
-    per_triangle = jnp.where(setup.visible & (bbox[:, 2] >= bbox[:, 0]) & (bbox[:, 3] >= bbox[:, 1]), span_x * (ty1 - ty0 + 1), 0)
+    per_triangle = jnp.where(setup.visible & (bbox[2] >= bbox[0]) & (bbox[3] >= bbox[1]), span_x * (ty1 - ty0 + 1), 0)
     pair_end = jnp.cumsum(per_triangle)
     pair_start = pair_end - per_triangle
     total_pairs = pair_end[-1] if num_faces else jnp.int32(0)
@@ -276,10 +325,10 @@ def rasterize_tiled(
         ty = ty0[owner] + local // span_x[owner]
         keep = in_range & _tile_test(setup, owner, (tx * tile).astype(jnp.float32), (ty * tile).astype(jnp.float32), tile, samples)
         tile_key = jnp.where(keep, ty * tiles_x + tx, num_tiles)
-        tile_key, tri_sorted = jax.lax.sort((tile_key, owner), num_keys=1, is_stable=True)
-
-        counts = jnp.zeros((num_tiles,), jnp.int32).at[tile_key].add(1, mode="drop")
-        tile_start = jnp.cumsum(counts) - counts
+        tile_key, tri_sorted = sort_by_bounded_key(tile_key, owner, key_bound=num_tiles)
+        # Each tile's run by binary search, not a scatter-add: the dropped pairs share one key.
+        bounds = jnp.searchsorted(tile_key, jnp.arange(num_tiles + 1, dtype=jnp.int32)).astype(jnp.int32)
+        tile_start, counts = bounds[:-1], bounds[1:] - bounds[:-1]
         if kernel:  # each tile's list as one work item
             zbuf, ids = resolve_tiles(setup, zbuf, ids, tile_start, counts, tri_sorted, positions, tile=tile,
                                       tiles_x=tiles_x, floor=floor, interpret=interpret)
