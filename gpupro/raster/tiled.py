@@ -21,7 +21,8 @@ Binning is count → exclusive scan → fill with fixed capacities, and no capac
    ``chunk_batch`` at a time against the tile's samples (again a while loop; exact coverage from one
    threshold per edge and block of at most 8 × 8 pixels, :func:`gpupro.raster.setup.evaluate`) and
    merged into the z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower
-   triangle id. With ``kernel`` (the fast form on GPUs) one kernel program per tile walks the tile's
+   triangle id (in groups of :data:`GROUP_SLOTS` triangles, each group's nearest fragment one uint32
+   key per sample, then the groups in list order). With ``kernel`` (the fast form on GPUs) one kernel program per tile walks the tile's
    whole list instead (:mod:`gpupro.raster.tile_kernel`; the same arithmetic, no loop on the host).
    With ``tail_batch`` > 0 (the default on CPUs for large images) only full chunks go this way; each
    tile's last, partial chunk is resolved pair by pair instead, ``tail_batch`` (triangle, tile) pairs a
@@ -58,10 +59,11 @@ SNAP_MARGIN = 1.0 / 64
 
 SLOT_BITS = 2
 GROUP_SLOTS = 1 << SLOT_BITS
-"""Triangles of a chunk resolved together into one key per sample: a covered depth lies in [0, 1], so its
-float32 bits are below 2^30 and ordered like the depths, and (bits << SLOT_BITS) | slot orders
-fragments by (depth, list position) in one uint32. Each group's keys are its one output, so XLA
-evaluates the group's triangles once (two outputs, depth and id, had it evaluate them twice)."""
+"""Triangles of a chunk whose nearest fragment is found by one minimum over one key per sample: a
+covered depth lies in [0, 1], so its float32 bits are below 2^30 and ordered like the depths, and
+(bits << SLOT_BITS) | slot orders fragments by (depth, list position) in one uint32. With one output
+XLA evaluates each triangle once; the nearest depth and its id as two reductions had XLA:CPU evaluate
+every triangle twice, once for each."""
 NO_KEY = jnp.uint32((1 << 32) - 1)
 """The key of a sample that no triangle of the group covers (above every key of a depth in [0, 1])."""
 
@@ -160,29 +162,20 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
         base_x = (16 * tile * (t % tiles_x))[:, None, None] + block_corner  # [B, 1, blocks]
         base_y = (16 * tile * (t // tiles_x))[:, None, None] + block_corner[:, None]  # [B, blocks, 1]
 
-        # Loops over groups and over their triangles on CPUs: XLA then fuses each triangle's evaluation
-        # once (in straight-line code it fused it into several consumers, and compiled 2× longer);
-        # unrolled elsewhere, where each step of a loop is a round trip to the host.
-        unrolled = jax.default_backend() != "cpu"
         group = min(width, GROUP_SLOTS)
         groups = -(-width // group)
-        by_group = jnp.pad(cand, ((0, 0), (0, groups * group - width)), constant_values=-1)
-        by_group = by_group.reshape(batch, groups, group).transpose(1, 0, 2)  # [groups, B, group]
+        by_group = jnp.pad(cand, ((0, 0), (0, groups * group - width)), constant_values=-1).reshape(batch, groups, group)
 
         def group_keys(with_float):
-            """Each group's nearest fragment per sample as one uint32 key [groups, B, T² S] (:data:`GROUP_SLOTS`)."""
-            def one_group(_, tri):
-                def one_slot(j, key):
-                    covered, depth = evaluate(setup, tri[:, j, None, None], base_x, base_y, offset_x, offset_y,
-                                              with_float=with_float)
-                    covered, depth = covered.reshape(batch, -1), depth.reshape(batch, -1)
-                    if floor is not None:
-                        covered &= above_floor(depth, tri[:, j, None], floor[0][t], floor[1][t])
-                    bits = jax.lax.bitcast_convert_type(depth, jnp.uint32)
-                    return jnp.minimum(key, jnp.where(covered, (bits << SLOT_BITS) | j.astype(jnp.uint32), NO_KEY))
-                key = jnp.full((batch, tile * tile * samples), NO_KEY, jnp.uint32)
-                return None, jax.lax.fori_loop(0, group, one_slot, key, unroll=group if unrolled else 1)
-            return jax.lax.scan(one_group, None, by_group, unroll=groups if unrolled else 1)[1]
+            """Each group's nearest fragment per sample as one uint32 key [B, groups, T² S] (:data:`GROUP_SLOTS`)."""
+            covered, depth = evaluate(setup, by_group[..., None, None], base_x[:, None, None], base_y[:, None, None],
+                                      offset_x, offset_y, with_float=with_float)
+            covered, depth = covered.reshape(by_group.shape + (-1,)), depth.reshape(by_group.shape + (-1,))
+            if floor is not None:
+                covered &= above_floor(depth, by_group[..., None], floor[0][t][:, None, None], floor[1][t][:, None, None])
+            bits = jax.lax.bitcast_convert_type(depth, jnp.uint32)
+            slot = jnp.arange(group, dtype=jnp.uint32)[:, None]
+            return jnp.min(jnp.where(covered, (bits << SLOT_BITS) | slot, NO_KEY), axis=2)
 
         keys = jax.lax.cond(needs_float_test(setup, cand), functools.partial(group_keys, True),
                             functools.partial(group_keys, False))
@@ -190,8 +183,8 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
         best_bits = jnp.full((batch, tile * tile * samples), NO_KEY >> SLOT_BITS, jnp.uint32)
         winner = jnp.full((batch, tile * tile * samples), NO_TRIANGLE, jnp.int32)
         for k in range(groups):
-            bits = keys[k] >> SLOT_BITS
-            slot = k * group + (keys[k] & ((1 << SLOT_BITS) - 1)).astype(jnp.int32)
+            bits = keys[:, k] >> SLOT_BITS
+            slot = k * group + (keys[:, k] & ((1 << SLOT_BITS) - 1)).astype(jnp.int32)
             closer = bits < best_bits
             best_bits = jnp.where(closer, bits, best_bits)
             winner = jnp.where(closer, jnp.take_along_axis(cand, slot, axis=1), winner)
