@@ -170,22 +170,24 @@ def test_overflow_still_gives_reference_image():
     assert c["tile_triangle_pairs"] <= c["bbox_tile_pairs"]
 
 
-@pytest.mark.parametrize("tail_batch", [0, 5])
-def test_partial_chunks_pair_by_pair_or_as_chunks_give_the_reference_image(tail_batch):
+@pytest.mark.parametrize("tail_batch, capacity", [(0, 6), (5, 4)])
+def test_partial_chunks_pair_by_pair_or_as_chunks_give_the_reference_image(tail_batch, capacity):
     # Both ways of resolving each tile's last, partial chunk (the CPU's default is pair by pair, other
-    # backends' is as a chunk), with lists long enough for full chunks too.
+    # backends' is as a chunk), with lists long enough for full chunks too; chunks of 6 triangles are
+    # resolved as two groups of GROUP_SLOTS = 4, the second padded.
     rng = np.random.default_rng(9)
     clip, faces = random_soup(rng, 120)
-    tiled = rasterize(clip, faces, resolution=RES, tile_capacity=4, chunk_batch=7, tail_batch=tail_batch, resolve="chunks")
+    tiled = rasterize(clip, faces, resolution=RES, tile_capacity=capacity, chunk_batch=7, tail_batch=tail_batch,
+                      resolve="chunks")
     ref = reference(clip, faces, resolution=RES)
     np.testing.assert_array_equal(np.asarray(tiled.triangle_id), np.asarray(ref.triangle_id))
     np.testing.assert_array_equal(np.asarray(tiled.depth), np.asarray(ref.depth))
     c = {k: int(v) for k, v in tiled.counters.items()}
-    if tail_batch:  # full chunks hold 4 pairs; the rest went one by one
+    if tail_batch:  # full chunks hold `capacity` pairs; the rest went one by one
         assert c["tail_pairs"] > 0 and c["tile_chunks"] > 0
-        assert 4 * c["tile_chunks"] + c["tail_pairs"] == c["tile_triangle_pairs"]
+        assert capacity * c["tile_chunks"] + c["tail_pairs"] == c["tile_triangle_pairs"]
     else:
-        assert c["tail_pairs"] == 0 and 4 * c["tile_chunks"] > c["tile_triangle_pairs"]
+        assert c["tail_pairs"] == 0 and capacity * c["tile_chunks"] > c["tile_triangle_pairs"]
 
 
 def test_kernel_resolve_equals_the_reference():
