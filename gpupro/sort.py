@@ -179,3 +179,12 @@ def sort_by_bounded_key(keys, values, *, key_bound: int):
     packed = jax.lax.sort(packed)
     order = (packed & jnp.uint32((1 << index_bits) - 1)).astype(jnp.int32)
     return (packed >> index_bits).astype(jnp.int32), values[order]
+
+
+def key_runs(sorted_keys, *, groups: int) -> tuple[jax.Array, jax.Array]:
+    """Where each key's run lies in ``sorted_keys`` int32 [n] (ascending; keys in [0, ``groups``] (static),
+    ``groups`` itself for entries that belong to no group): ``(starts, counts)`` int32 [groups], by binary
+    search rather than a segment sum, whose atomic adds would serialise on a GPU where many entries
+    share one key (the misses)."""
+    bounds = jnp.searchsorted(sorted_keys, jnp.arange(groups + 1, dtype=jnp.int32)).astype(jnp.int32)
+    return bounds[:-1], bounds[1:] - bounds[:-1]

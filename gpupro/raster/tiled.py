@@ -22,8 +22,9 @@ Binning is count → exclusive scan → fill with fixed capacities, and no capac
    threshold per edge and block of at most 8 × 8 pixels, :func:`gpupro.raster.setup.evaluate`) and
    merged into the z-buffer by (depth, triangle id): the nearest depth wins, ties go to the lower
    triangle id (in groups of :data:`GROUP_SLOTS` triangles, each group's nearest fragment one uint32
-   key per sample, then the groups in list order). With ``kernel`` (the fast form on GPUs) one kernel program per tile walks the tile's
-   whole list instead (:mod:`gpupro.raster.tile_kernel`; the same arithmetic, no loop on the host).
+   key per sample, then the groups in list order). With ``kernel`` (the fast form on GPUs) one kernel
+   program per tile walks the tile's whole list instead (:mod:`gpupro.raster.tile_kernel`; the same
+   arithmetic, no loop on the host).
    With ``tail_batch`` > 0 (the default on CPUs for large images) only full chunks go this way; each
    tile's last, partial chunk is resolved pair by pair instead, ``tail_batch`` (triangle, tile) pairs a
    step (a third while loop). At 1920 × 1080 with 10k small triangles most tiles hold one or two
@@ -51,7 +52,7 @@ from gpupro.raster.setup import (
     sample_offsets,
 )
 from gpupro.raster.tile_kernel import resolve_tiles
-from gpupro.sort import sort_by_bounded_key
+from gpupro.sort import key_runs, sort_by_bounded_key
 
 SNAP_MARGIN = 1.0 / 64
 """Pixels by which the tile test widens a tile: more than snapping moves a vertex (√2/512)."""
@@ -319,9 +320,7 @@ def rasterize_tiled(
         keep = in_range & _tile_test(setup, owner, (tx * tile).astype(jnp.float32), (ty * tile).astype(jnp.float32), tile, samples)
         tile_key = jnp.where(keep, ty * tiles_x + tx, num_tiles)
         tile_key, tri_sorted = sort_by_bounded_key(tile_key, owner, key_bound=num_tiles)
-        # Each tile's run by binary search, not a scatter-add: the dropped pairs share one key.
-        bounds = jnp.searchsorted(tile_key, jnp.arange(num_tiles + 1, dtype=jnp.int32)).astype(jnp.int32)
-        tile_start, counts = bounds[:-1], bounds[1:] - bounds[:-1]
+        tile_start, counts = key_runs(tile_key, groups=num_tiles)
         if kernel:  # each tile's list as one work item
             zbuf, ids = resolve_tiles(setup, zbuf, ids, tile_start, counts, tri_sorted, positions, tile=tile,
                                       tiles_x=tiles_x, floor=floor, interpret=interpret)

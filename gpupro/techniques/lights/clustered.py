@@ -96,6 +96,7 @@ from gpupro.scene.lights import DIRECTIONAL, Lights
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_boxes, light_spheres, transform_lights
 from gpupro.shading.light_lists import kept_lengths, list_storage, pack_pairs
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
+from gpupro.sort import key_runs
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
@@ -367,10 +368,7 @@ def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int, light_
     cluster, light = jax.lax.sort((cluster, light), num_keys=1 if light_ordered else 2, is_stable=light_ordered)
     if list_layout == "packed":
         return pack_pairs(cluster, light, cluster < clusters, groups=clusters, memory_capacity=list_memory_capacity)
-    # Each cluster's run in the sorted pairs by binary search, not by a segment sum: the misses all
-    # share one segment, whose atomic adds would serialise on a GPU.
-    bounds = jnp.searchsorted(cluster, jnp.arange(clusters + 1, dtype=jnp.int32)).astype(jnp.int32)
-    starts, counts = bounds[:-1], bounds[1:] - bounds[:-1]
+    starts, counts = key_runs(cluster, groups=clusters)
     slot = jnp.arange(cluster.shape[0], dtype=jnp.int32) - starts[jnp.minimum(cluster, clusters - 1)]
     slot = jnp.where(cluster < clusters, slot, capacity)
     lists = jnp.full((clusters, capacity), -1, jnp.int32).at[cluster, slot].set(light, mode="drop")
