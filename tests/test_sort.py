@@ -148,7 +148,8 @@ def test_bad_input_is_refused_by_name():
     assert radix_sort(np.zeros(0, np.float32)).permutation.shape == (0,)
 
 
-@pytest.mark.parametrize("key_bound", [7, 1 << 24])  # 3 + 9 index bits fit in 32 (packed); 25 + 9 do not
+# Below 2^16 the host's radix sort on CPUs (packed elsewhere); 21 + 9 index bits fit in 32 (packed); 25 + 9 do not.
+@pytest.mark.parametrize("key_bound", [7, 1 << 20, 1 << 24])
 def test_sort_by_bounded_key_is_a_stable_sort(key_bound):
     n = 300  # 9 index bits
     keys = RNG.integers(0, min(key_bound, 6) + 1, n).astype(np.int32)  # many ties; the bound itself included
@@ -158,3 +159,15 @@ def test_sort_by_bounded_key_is_a_stable_sort(key_bound):
     order = np.argsort(keys, kind="stable")
     np.testing.assert_array_equal(sorted_keys, keys[order])
     np.testing.assert_array_equal(sorted_values, values[order])
+
+
+def test_sort_by_bounded_key_under_vmap():
+    """Each row sorted on its own, on every path (the host's radix sort takes the batch in one call)."""
+    keys = RNG.integers(0, 5, (3, 40)).astype(np.int32)
+    values = RNG.normal(size=(3, 40)).astype(np.float32)
+    for key_bound in (4, 1 << 20):
+        sort = jax.jit(jax.vmap(lambda k, v: sort_by_bounded_key(k, v, key_bound=key_bound)))
+        sorted_keys, sorted_values = sort(keys, values)
+        order = np.argsort(keys, axis=1, kind="stable")
+        np.testing.assert_array_equal(sorted_keys, np.take_along_axis(keys, order, axis=1))
+        np.testing.assert_array_equal(sorted_values, np.take_along_axis(values, order, axis=1))
