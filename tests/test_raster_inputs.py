@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from gpupro.raster import rasterize, reference
-from gpupro.raster.rasterize import _sanitize_faces
+from gpupro.raster.rasterize import _sanitize_faces, padded_size
 
 RES = (8, 8)
 
@@ -143,3 +143,15 @@ def test_face_check_is_the_same_concrete_and_traced_for_narrow_dtypes(dtype):
     np.testing.assert_array_equal(np.asarray(concrete[1]), valid)
     assert concrete[0].dtype == np.int32 and int(concrete[2]) == (~valid).sum()
     np.testing.assert_array_equal(np.asarray(concrete[0]), np.where(valid[:, None], faces, 0))
+
+
+def test_padded_sizes_waste_at_most_a_quarter_and_are_shared():
+    """Four sizes per octave: every count ≤ its padded size ≤ 1.25 × count (from 64 up), and the padded
+    sizes of all counts in (2^k, 2^(k+1)] are four."""
+    sizes = [padded_size(n) for n in range(1, 5000)]
+    assert all(n <= p for n, p in zip(range(1, 5000), sizes)) and min(sizes) == 64
+    assert all(p <= max(64, 1.25 * n) for n, p in zip(range(1, 5000), sizes))
+    assert sizes == sorted(sizes)
+    for k in range(6, 12):
+        assert len({padded_size(n) for n in range(2**k + 1, 2**(k + 1) + 1)}) == 4
+    assert padded_size(100_000) == 114_688

@@ -193,7 +193,7 @@ def antialias(
     if num_faces == 0 or num_vertices == 0:
         return color  # no triangles, no silhouettes
     # Faces with an index outside [0, V) become [-1, -1, -1] (ignored); then vertex and face counts are
-    # padded to powers of two (zero vertices, ignored faces) so that meshes of similar sizes share code.
+    # padded (:func:`padded_size`; zero vertices, ignored faces) so that meshes of similar sizes share code.
     faces = jnp.where(jnp.all((faces >= 0) & (faces < num_vertices), axis=1)[:, None], faces, -1)
     clip = jnp.pad(clip, ((0, padded_size(num_vertices) - num_vertices), (0, 0)))
     faces = jnp.pad(faces, ((0, padded_size(num_faces) - num_faces), (0, 0)), constant_values=-1)

@@ -48,7 +48,7 @@ edge of two snapped triangles has E and −E exactly, so watertightness holds fo
 Multisampling evaluates the same test at D3D's standard sample positions (:data:`SAMPLE_PATTERNS`).
 Depth stays float: the window depth z_w = ½ Z/W + ½ is affine in the image, interpolated from the
 snapped vertices, z_w(p) = z_0 + ∂z/∂x (p_x − x_0) + ∂z/∂y (p_y − y_0), each product a fixed sum of four
-float32 products that are exact (:func:`_exact_products`), so that no compiler's fused multiply-adds
+float32 products that are exact (:func:`exact_products`), so that no compiler's fused multiply-adds
 change it and every rasterizer computes the same bits; it is exactly z_0 where the three vertices
 share a depth. Other triangles (a vertex behind the eye or past the guard band, where hardware clips)
 keep the homogeneous float test above (skipped when none is in view). Perspective-correct
@@ -348,19 +348,105 @@ def plane_origin(setup: TriangleSetup, tri: jax.Array) -> tuple[jax.Array, jax.A
     return tuple(setup.fixed[0, k][tri].astype(jnp.float32) / (1 << SUBPIXEL_BITS) for k in (0, 1))
 
 
-def _exact_products(slope: jax.Array, offset: jax.Array) -> jax.Array:
-    """slope · offset / 256 (float32) for an int32 ``offset`` below 2^23 in magnitude, as a fixed sum of four
-    products that are each exact in float32 (12-bit halves of both factors).
+def split_slope(slope: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A float32 slope as (leading 12 bits, the rest), each with at most 12 significant bits, for
+    :func:`exact_products`."""
+    bits = jax.lax.bitcast_convert_type(slope, jnp.int32)
+    slope_hi = jax.lax.bitcast_convert_type(bits & ~0xFFF, jnp.float32)
+    return slope_hi, slope - slope_hi
+
+
+def exact_products(slope_hi: jax.Array, slope_lo: jax.Array, offset: jax.Array) -> jax.Array:
+    """slope · offset / 256 (float32) for a slope split by :func:`split_slope` and an int32 ``offset`` below
+    2^23 in magnitude, as a fixed sum of four products that are each exact in float32 (12-bit halves of
+    both factors).
 
     A compiler may fuse a product into the add that follows it (FMA) in one program and not in another;
     for an exact product both give the same result, so depths agree to the bit wherever they are computed."""
-    bits = jax.lax.bitcast_convert_type(slope, jnp.int32)
-    slope_hi = jax.lax.bitcast_convert_type(bits & ~0xFFF, jnp.float32)  # the leading 12 bits
-    slope_lo = slope - slope_hi
     scale = 1.0 / (1 << SUBPIXEL_BITS)
     offset_hi = (offset & ~0x7FF).astype(jnp.float32) * scale  # at most 12 significant bits
     offset_lo = (offset & 0x7FF).astype(jnp.float32) * scale  # 11 bits
     return (slope_hi * offset_hi + slope_lo * offset_hi) + (slope_hi * offset_lo + slope_lo * offset_lo)
+
+
+class BasePoints(typing.NamedTuple):
+    """What :func:`evaluate` needs of triangles ``tri`` [...A] at base points, per (triangle, base point):
+    the part of the test that does not depend on the sample (:func:`prepare`). Each field [...A]:
+
+    ``tri`` int32 (a valid index: 0 where the caller's was not), ``base_x``, ``base_y`` int32 (1/16 pixel),
+    ``visible``, ``snapped`` bool (``visible`` False for invalid indices), ``steps`` [(a_i, b_i) for each
+    edge] int32 and ``thresholds`` [k_i] int32 (:func:`edge_thresholds`), ``dx``, ``dy`` int32: the base
+    point minus the snapped vertex 0 in 1/256 pixel, ``plane`` [z_0, ∂z/∂x split, ∂z/∂y split]
+    (:func:`split_slope`)."""
+
+    tri: jax.Array
+    base_x: jax.Array
+    base_y: jax.Array
+    visible: jax.Array
+    snapped: jax.Array
+    steps: list
+    thresholds: list
+    dx: jax.Array
+    dy: jax.Array
+    plane: list
+
+
+def prepare(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array) -> BasePoints:
+    """The per-(triangle, base point) part of :func:`evaluate` (same arguments, without the offsets).
+
+    Computed apart so that a caller can materialise it once per triangle and base point: inside one fused
+    kernel with the per-sample test, XLA:CPU recomputed it for every sample (the thresholds' exact
+    products are ~150 integer operations)."""
+    valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
+    shape = jnp.broadcast_shapes(jnp.shape(tri), jnp.shape(base_x), jnp.shape(base_y))
+    t = jnp.broadcast_to(jnp.where(valid_index, tri, 0), shape)
+    base_x, base_y = jnp.broadcast_to(base_x, shape), jnp.broadcast_to(base_y, shape)
+    at = lambda field, *index: field[index][t]
+    to_fixed = lambda p: p << (SUBPIXEL_BITS - 4)
+    slopes = [split_slope(at(setup.plane, i)) for i in (1, 2)]
+    return BasePoints(
+        t, base_x, base_y, jnp.broadcast_to(valid_index, shape) & at(setup.visible), at(setup.snapped),
+        [(at(setup.fixed_edges, i, 1), at(setup.fixed_edges, i, 0)) for i in range(3)],
+        edge_thresholds(setup, t, base_x, base_y), to_fixed(base_x) - at(setup.fixed, 0, 0),
+        to_fixed(base_y) - at(setup.fixed, 0, 1), [at(setup.plane, 0), *slopes])
+
+
+def evaluate_prepared(setup: TriangleSetup, points: BasePoints, offset_x: jax.Array, offset_y: jax.Array, *,
+                      with_float: bool | None = None) -> tuple[jax.Array, jax.Array]:
+    """:func:`evaluate` from its per-(triangle, base point) part ``points`` (:func:`prepare`, fields
+    [...A]) at the samples base + (``offset_x``, ``offset_y``) [...D]: ``(covered, depth)`` [...A, ...D]."""
+    offset_x, offset_y = jnp.broadcast_arrays(jnp.asarray(offset_x, jnp.int32), jnp.asarray(offset_y, jnp.int32))
+    trailing = (...,) + (None,) * offset_x.ndim
+    p = jax.tree_util.tree_map(lambda a: a[trailing], points)  # per (triangle, base point) [...A, 1...]
+
+    def decide(with_float: bool):
+        """(covered, depth) from the exact test, and the float one too ``with_float``."""
+        # Snapped triangles: exact integer edges, one threshold per base and an int32 product per sample.
+        exact = [a * offset_x + b * offset_y >= k for (a, b), k in zip(p.steps, p.thresholds)]
+        shift = SUBPIXEL_BITS - 4  # 1/16 → 1/256 pixel
+        dx, dy = p.dx + (offset_x << shift), p.dy + (offset_y << shift)
+        affine = p.plane[0] + (exact_products(*p.plane[1], dx) + exact_products(*p.plane[2], dy))
+        float_inside, float_depth = False, 0.0
+        if with_float:  # other triangles: the float edges and homogeneous depth at the samples
+            at = lambda field, *index: field[index][p.tri]
+            px = ((p.base_x + offset_x) << shift).astype(jnp.float32) / 256
+            py = ((p.base_y + offset_y) << shift).astype(jnp.float32) / 256
+            float_inside, float_depth = homogeneous_coverage(
+                [[at(setup.edges, i, j) for j in range(3)] for i in range(3)],
+                [[at(setup.edge_origin, i, j) for j in range(2)] for i in range(3)],
+                [at(setup.owns_edge, i) for i in range(3)], [at(setup.depth_coef, i) for i in range(3)], px, py)
+        covered, depth = select_coverage(p.visible, p.snapped, exact[0] & exact[1] & exact[2], affine, float_inside,
+                                         float_depth)
+        full = jnp.broadcast_shapes(covered.shape, depth.shape)
+        return jnp.broadcast_to(covered, full), jnp.broadcast_to(depth, full)
+
+    if with_float is not None:
+        return decide(with_float)
+    # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
+    # unless the caller vmaps). Each branch decides whole, so no placeholder arrays are materialised, and
+    # ``points``, an operand of the branch, is computed once per triangle and base point.
+    return jax.lax.cond(jnp.any(points.visible & ~points.snapped), functools.partial(decide, True),
+                        functools.partial(decide, False))
 
 
 def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array, offset_x: jax.Array,
@@ -376,55 +462,11 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     evaluated at the sample's absolute position.
 
     ``with_float`` (static): whether triangles that are not snapped are tested too (the float edges);
-    None decides at run time (:func:`needs_float_test`). With False such triangles are never covered,
-    so a caller passes False only where :func:`needs_float_test` is False.
+    None decides at run time (whether any of ``tri`` is visible and not snapped). With False such
+    triangles are never covered, so a caller passes False only where none of them is. Equal to
+    :func:`evaluate_prepared` of :func:`prepare`.
     """
-    valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
-    t = jnp.where(valid_index, tri, 0)
-    offset_x, offset_y = jnp.broadcast_arrays(jnp.asarray(offset_x, jnp.int32), jnp.asarray(offset_y, jnp.int32))
-    trailing = (...,) + (None,) * offset_x.ndim
-    shape = jnp.broadcast_shapes(t.shape, jnp.shape(base_x), jnp.shape(base_y))
-    base_x, base_y = jnp.broadcast_to(base_x, shape), jnp.broadcast_to(base_y, shape)
-    t = jnp.broadcast_to(t, shape)
-    visible = valid_index & setup.visible[t]
-    snapped = setup.snapped[t]
-    at = lambda field, *index: field[index][t][trailing]  # a per-triangle entry [...A, 1...]
-
-    def decide(with_float: bool):
-        """(covered, depth) from the exact test, and the float one too ``with_float``."""
-        sample_x = ((base_x[trailing] + offset_x) << (SUBPIXEL_BITS - 4))  # 1/256 pixel
-        sample_y = ((base_y[trailing] + offset_y) << (SUBPIXEL_BITS - 4))
-        # Snapped triangles: exact integer edges, one threshold per base and an int32 product per sample.
-        k = edge_thresholds(setup, t, base_x, base_y)
-        exact = [at(setup.fixed_edges, i, 1) * offset_x + at(setup.fixed_edges, i, 0) * offset_y >= k[i][trailing]
-                 for i in range(3)]
-        affine = affine_depth([at(setup.plane, i) for i in range(3)], sample_x - at(setup.fixed, 0, 0),
-                              sample_y - at(setup.fixed, 0, 1))
-        float_inside, float_depth = False, 0.0
-        if with_float:  # other triangles: the float edges and homogeneous depth at the samples
-            px, py = sample_x.astype(jnp.float32) / 256, sample_y.astype(jnp.float32) / 256
-            float_inside, float_depth = homogeneous_coverage(
-                [[at(setup.edges, i, j) for j in range(3)] for i in range(3)],
-                [[at(setup.edge_origin, i, j) for j in range(2)] for i in range(3)],
-                [at(setup.owns_edge, i) for i in range(3)], [at(setup.depth_coef, i) for i in range(3)], px, py)
-        covered, depth = select_coverage(visible[trailing], snapped[trailing], exact[0] & exact[1] & exact[2], affine,
-                                         float_inside, float_depth)
-        full = jnp.broadcast_shapes(covered.shape, depth.shape)
-        return jnp.broadcast_to(covered, full), jnp.broadcast_to(depth, full)
-
-    if with_float is not None:
-        return decide(with_float)
-    # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
-    # unless the caller vmaps). Each branch decides whole, so no placeholder arrays are materialised.
-    return jax.lax.cond(needs_float_test(setup, tri), functools.partial(decide, True), functools.partial(decide, False))
-
-
-def needs_float_test(setup: TriangleSetup, tri: jax.Array) -> jax.Array:
-    """Whether any of triangles ``tri`` (int32, any shape; entries outside [0, F) ignored) is visible and
-    not snapped, so that :func:`evaluate` needs its float test: a bool scalar."""
-    valid_index = (tri >= 0) & (tri < setup.visible.shape[0])
-    t = jnp.where(valid_index, tri, 0)
-    return jnp.any(valid_index & setup.visible[t] & ~setup.snapped[t])
+    return evaluate_prepared(setup, prepare(setup, tri, base_x, base_y), offset_x, offset_y, with_float=with_float)
 
 
 def select_coverage(visible, snapped, exact_inside, affine, float_inside, float_depth):
@@ -447,9 +489,9 @@ def above_floor(depth, tri, floor_depth, floor_id):
 def affine_depth(plane: list, dx: jax.Array, dy: jax.Array) -> jax.Array:
     """Window depth of a snapped triangle at samples (dx, dy) int32 from its vertex 0, in 1/256 pixel:
     z_0 + ∂z/∂x dx + ∂z/∂y dy with ``plane`` = [z_0, ∂z/∂x, ∂z/∂y] (``TriangleSetup.plane``'s components,
-    broadcast against dx, dy), the products exact (:func:`_exact_products`) and summed in a fixed order,
+    broadcast against dx, dy), the products exact (:func:`exact_products`) and summed in a fixed order,
     so every program computes the same bits."""
-    return plane[0] + (_exact_products(plane[1], dx) + _exact_products(plane[2], dy))
+    return plane[0] + (exact_products(*split_slope(plane[1]), dx) + exact_products(*split_slope(plane[2]), dy))
 
 
 def homogeneous_coverage(e: list, o: list, owns: list, coef: list, px: jax.Array, py: jax.Array):
@@ -465,9 +507,10 @@ def homogeneous_coverage(e: list, o: list, owns: list, coef: list, px: jax.Array
 
 
 def barycentrics(setup: TriangleSetup, tri: jax.Array, px: jax.Array, py: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Perspective-correct barycentrics of triangles ``tri`` at pixel centres, with their derivatives.
+    """Perspective-correct barycentrics of triangles ``tri`` [...] (-1: none) at pixel positions ``px``,
+    ``py`` [...] float32, with their derivatives.
 
-    Returns ``(b, db_dx, db_dy)``, each float32 [S, 3]: ``b_i = E_i / Σ E``, and its derivative per
+    Returns ``(b, db_dx, db_dy)``, each float32 [..., 3]: ``b_i = E_i / Σ E``, and its derivative per
     pixel step right (``x``) and down (``y``). Zero where ``tri`` is -1.
     """
     t = jnp.where(tri >= 0, tri, 0)

@@ -46,9 +46,9 @@ from gpupro.raster.setup import (
     SAMPLE_PATTERNS,
     TriangleSetup,
     above_floor,
-    evaluate,
-    needs_float_test,
+    evaluate_prepared,
     plane_origin,
+    prepare,
     sample_offsets,
 )
 from gpupro.raster.tile_kernel import resolve_tiles
@@ -128,14 +128,26 @@ def _tile_test(setup: TriangleSetup, tri: jax.Array, x0: jax.Array, y0: jax.Arra
 
 
 def to_tile_layout(image, *, tile: int, samples: int):
-    """Per-sample values [H, W, S] in the z-buffer's layout [tiles, T² S] (inverse of the untiling at the
-    end of :func:`rasterize_tiled`; the padding past the image repeats nothing that is read back)."""
+    """Per-sample values [H, W, S] in the z-buffer's layout [tiles, T² S] (inverse of
+    :func:`from_tile_layout`; the padding past the image is zero and never read back)."""
     height, width = image.shape[:2]
     tiles_y, tiles_x = -(-height // tile), -(-width // tile)
     block, blocks, _, _, _ = _sample_layout(tile, samples)
     image = jnp.pad(image, ((0, tiles_y * tile - height), (0, tiles_x * tile - width), (0, 0)))
     image = image.reshape(tiles_y, blocks, block, tiles_x, blocks, block, samples).transpose(0, 3, 1, 4, 2, 5, 6)
     return image.reshape(tiles_y * tiles_x, tile * tile * samples)
+
+
+def from_tile_layout(buffer, *, resolution: tuple[int, int], tile: int, samples: int):
+    """Values in the z-buffer's layout [tiles, T² S, ...] (:func:`rasterize_tiled`) as an image [H, W, S, ...]
+    for ``resolution`` (H, W); trailing axes are carried along."""
+    height, width = resolution
+    tiles_y, tiles_x = -(-height // tile), -(-width // tile)
+    block, blocks, _, _, _ = _sample_layout(tile, samples)
+    trailing = buffer.shape[2:]
+    buffer = buffer.reshape((tiles_y, tiles_x, blocks, blocks, block, block, samples) + trailing)
+    buffer = buffer.transpose((0, 2, 4, 1, 3, 5, 6) + tuple(range(7, 7 + len(trailing))))
+    return buffer.reshape((tiles_y * tile, tiles_x * tile, samples) + trailing)[:height, :width]
 
 
 def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, first, width, *, batch, tile, tiles_x,
@@ -167,10 +179,12 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
         groups = -(-width // group)
         by_group = jnp.pad(cand, ((0, 0), (0, groups * group - width)), constant_values=-1).reshape(batch, groups, group)
 
+        # Per (triangle, block) once, outside the branch: fused into it, it was recomputed for every sample.
+        points = prepare(setup, by_group[..., None, None], base_x[:, None, None], base_y[:, None, None])
+
         def group_keys(with_float):
             """Each group's nearest fragment per sample as one uint32 key [B, groups, T² S] (:data:`GROUP_SLOTS`)."""
-            covered, depth = evaluate(setup, by_group[..., None, None], base_x[:, None, None], base_y[:, None, None],
-                                      offset_x, offset_y, with_float=with_float)
+            covered, depth = evaluate_prepared(setup, points, offset_x, offset_y, with_float=with_float)
             covered, depth = covered.reshape(by_group.shape + (-1,)), depth.reshape(by_group.shape + (-1,))
             if floor is not None:
                 covered &= above_floor(depth, by_group[..., None], floor[0][t][:, None, None], floor[1][t][:, None, None])
@@ -178,7 +192,7 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
             slot = jnp.arange(group, dtype=jnp.uint32)[:, None]
             return jnp.min(jnp.where(covered, (bits << SLOT_BITS) | slot, NO_KEY), axis=2)
 
-        keys = jax.lax.cond(needs_float_test(setup, cand), functools.partial(group_keys, True),
+        keys = jax.lax.cond(jnp.any(points.visible & ~points.snapped), functools.partial(group_keys, True),
                             functools.partial(group_keys, False))
         # The groups in list order: a strictly nearer depth replaces, so ties keep the earlier, lower id.
         best_bits = jnp.full((batch, tile * tile * samples), NO_KEY >> SLOT_BITS, jnp.uint32)
@@ -272,8 +286,9 @@ def rasterize_tiled(
 
     ``floor``: None, or (depth float32, triangle id int32) [H, W, S]: only fragments after it in (depth,
     id) order are drawn (:func:`above_floor`; a depth-peeling pass).
-    Returns ``(triangle_id int32 [H, W, S], depth float32 [H, W, S], counters)``: -1 and 1 where nothing
-    is covered.
+    Returns ``(triangle_id int32 [tiles, T² S], depth float32 [tiles, T² S], counters)`` in the z-buffer's
+    layout (:func:`from_tile_layout` makes images of them; per-sample work that follows is cheaper in
+    it than on its transposition): -1 and 1 where nothing is covered, also at samples past the image.
     """
     height, width = resolution
     tiles_y, tiles_x = -(-height // tile), -(-width // tile)
@@ -293,7 +308,6 @@ def rasterize_tiled(
     total_pairs = pair_end[-1] if num_faces else jnp.int32(0)
 
     slots = jnp.arange(pair_capacity, dtype=jnp.int32)
-    block, blocks, _, _, _ = _sample_layout(tile, samples)
     tile_samples = tile * tile * samples
     if floor is not None:
         floor = tuple(to_tile_layout(f, tile=tile, samples=samples) for f in floor)
@@ -341,13 +355,7 @@ def rasterize_tiled(
         state = bin_pass(state)
     _, zbuf, ids, stats = jax.lax.while_loop(lambda s: s[0] < total_pairs, bin_pass, state)
 
-    def untile(buf):
-        buf = buf.reshape(tiles_y, tiles_x, blocks, blocks, block, block, samples).transpose(0, 2, 4, 1, 3, 5, 6)
-        return buf.reshape(tiles_y * tile, tiles_x * tile, samples)[:height, :width]
-
-    depth = untile(zbuf)
-    triangle_id = untile(ids)
-    covered = triangle_id != NO_TRIANGLE
+    covered = ids != NO_TRIANGLE
     tile_counts, passes, chunks_run, tail_run = stats
     counters = {
         "triangles_after_culling": jnp.sum(setup.visible & (per_triangle > 0)).astype(jnp.int32),
@@ -361,4 +369,4 @@ def rasterize_tiled(
         "tile_chunks": chunks_run,
         "tail_pairs": tail_run,
     }
-    return jnp.where(covered, triangle_id, -1), jnp.where(covered, depth, 1.0), counters
+    return jnp.where(covered, ids, -1), jnp.where(covered, zbuf, 1.0), counters
