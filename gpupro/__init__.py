@@ -12,6 +12,7 @@ Typical use::
 See ``gpupro list`` for the technique catalogue and README.md for the command line.
 """
 
+from gpupro import runtime  # first: malloc keeps freed memory (see gpupro.runtime)
 from gpupro import scene, scenes, techniques
 from gpupro.fit import FitParameter, check_grads, fit
 from gpupro.pipeline import Pass, Pipeline, PipelineError, complete, default_pipeline, make_pass, pipeline_for
