@@ -16,7 +16,6 @@ library is not glibc (``mallopt`` is glibc's).
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import platform
 
@@ -34,10 +33,7 @@ def keep_freed_memory() -> bool:
     False where ``GPUPRO_KEEP_FREED_MEMORY`` is ``0``, or the C library is not glibc."""
     if os.environ.get("GPUPRO_KEEP_FREED_MEMORY", "1") == "0" or platform.libc_ver()[0] != "glibc":
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-    except OSError:
-        return False
+    libc = ctypes.CDLL(None)  # the process's own symbols: the C library Python runs on
     mmap = libc.mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(MMAP_THRESHOLD))
     trim = libc.mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(TRIM_THRESHOLD))
     return bool(mmap and trim)
