@@ -449,8 +449,13 @@ def evaluate_prepared(setup: TriangleSetup, points: BasePoints, offset_x: jax.Ar
     # Most scenes have every triangle snapped: the float test is then skipped (a branch, not a select,
     # unless the caller vmaps). Each branch decides whole, so no placeholder arrays are materialised, and
     # ``points``, an operand of the branch, is computed once per triangle and base point.
-    return jax.lax.cond(jnp.any(points.visible & ~points.snapped), functools.partial(decide, True),
-                        functools.partial(decide, False))
+    return jax.lax.cond(needs_float_test(points), functools.partial(decide, True), functools.partial(decide, False))
+
+
+def needs_float_test(points: BasePoints) -> jax.Array:
+    """Whether any triangle of ``points`` (:func:`prepare`, fields [...A]) is visible and not snapped, so
+    that :func:`evaluate_prepared` needs its float test: a bool scalar []."""
+    return jnp.any(points.visible & ~points.snapped)
 
 
 def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: jax.Array, offset_x: jax.Array,
@@ -466,8 +471,8 @@ def evaluate(setup: TriangleSetup, tri: jax.Array, base_x: jax.Array, base_y: ja
     evaluated at the sample's absolute position.
 
     ``with_float`` (static): whether triangles that are not snapped are tested too (the float edges);
-    None decides at run time (whether any of ``tri`` is visible and not snapped). With False such
-    triangles are never covered, so a caller passes False only where none of them is. Equal to
+    None decides at run time (:func:`needs_float_test`). With False such triangles are never covered,
+    so a caller passes False only where :func:`needs_float_test` is False. Equal to
     :func:`evaluate_prepared` of :func:`prepare`.
     """
     return evaluate_prepared(setup, prepare(setup, tri, base_x, base_y), offset_x, offset_y, with_float=with_float)

@@ -47,6 +47,7 @@ from gpupro.raster.setup import (
     TriangleSetup,
     above_floor,
     evaluate_prepared,
+    needs_float_test,
     plane_origin,
     prepare,
     sample_offsets,
@@ -192,7 +193,7 @@ def _resolve_items(setup, zbuf, ids, tile_start, counts, tri_sorted, items, firs
             slot = jnp.arange(group, dtype=jnp.uint32)[:, None]
             return jnp.min(jnp.where(covered, (bits << SLOT_BITS) | slot, NO_KEY), axis=2)
 
-        keys = jax.lax.cond(jnp.any(points.visible & ~points.snapped), functools.partial(group_keys, True),
+        keys = jax.lax.cond(needs_float_test(points), functools.partial(group_keys, True),
                             functools.partial(group_keys, False))
         # The groups in list order: a strictly nearer depth replaces, so ties keep the earlier, lower id.
         best_bits = jnp.full((batch, tile * tile * samples), NO_KEY >> SLOT_BITS, jnp.uint32)
