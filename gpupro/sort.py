@@ -212,5 +212,16 @@ def key_runs(sorted_keys, *, groups: int) -> tuple[jax.Array, jax.Array]:
     ``groups`` itself for entries that belong to no group): ``(starts, counts)`` int32 [groups], by binary
     search rather than a segment sum, whose atomic adds would serialise on a GPU where many entries
     share one key (the misses)."""
-    bounds = jnp.searchsorted(sorted_keys, jnp.arange(groups + 1, dtype=jnp.int32)).astype(jnp.int32)
+    bounds = search_sorted(sorted_keys, jnp.arange(groups + 1, dtype=jnp.int32))
     return bounds[:-1], bounds[1:] - bounds[:-1]
+
+
+def search_sorted(sorted_values, queries, *, side: str = "left") -> jax.Array:
+    """``jnp.searchsorted(sorted_values, queries, side=side)`` as int32 (``sorted_values`` [n] ascending,
+    ``queries`` any shape), by the loop form each backend runs best: on CPUs the default ``scan``, a
+    ``while`` loop of ⌈log2 n⌉ steps; elsewhere ``scan_unrolled``, because on a GPU every step of a
+    ``while`` loop copies its condition to the host. Measured on the 2-core CPU, 32,401 queries into
+    2^17 keys: 1.0 ms against 3.0 ms unrolled."""
+    def search(method):
+        return lambda v, q: jnp.searchsorted(v, q, side=side, method=method).astype(jnp.int32)
+    return jax.lax.platform_dependent(sorted_values, queries, cpu=search("scan"), default=search("scan_unrolled"))

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gpupro.sort import radix_sort, sort_by_bounded_key, sortable_bits
+from gpupro.sort import key_runs, radix_sort, search_sorted, sort_by_bounded_key, sortable_bits
 
 JITTED = jax.jit(radix_sort, static_argnames=("key_bits", "block"))
 RNG = np.random.default_rng(0)
@@ -171,3 +171,18 @@ def test_sort_by_bounded_key_under_vmap():
         order = np.argsort(keys, axis=1, kind="stable")
         np.testing.assert_array_equal(sorted_keys, np.take_along_axis(keys, order, axis=1))
         np.testing.assert_array_equal(sorted_values, np.take_along_axis(values, order, axis=1))
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_search_sorted_and_key_runs_agree_with_numpy(side):
+    """Ties, queries past both ends, a 2-D batch of queries, under jit and vmap (the backend picks the loop form)."""
+    values = np.sort(RNG.integers(0, 9, 200)).astype(np.int32)
+    queries = np.arange(-2, 12, dtype=np.int32).reshape(2, 7)
+    search = jax.jit(lambda v, q: search_sorted(v, q, side=side))
+    np.testing.assert_array_equal(search(values, queries), np.searchsorted(values, queries, side=side))
+    rows = np.sort(RNG.integers(0, 9, (3, 50)), axis=1).astype(np.int32)
+    batched = jax.jit(jax.vmap(lambda v: search_sorted(v, queries[0], side=side)))(rows)
+    np.testing.assert_array_equal(batched, [np.searchsorted(r, queries[0], side=side) for r in rows])
+    starts, counts = jax.jit(lambda k: key_runs(k, groups=8))(values)  # key 8 lies past the groups
+    np.testing.assert_array_equal(counts, np.bincount(values, minlength=9)[:8])
+    np.testing.assert_array_equal(starts, np.searchsorted(values, np.arange(8)))

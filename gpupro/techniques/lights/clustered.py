@@ -96,7 +96,7 @@ from gpupro.scene.lights import DIRECTIONAL, Lights
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_boxes, light_spheres, transform_lights
 from gpupro.shading.light_lists import kept_lengths, list_storage, pack_pairs
 from gpupro.shading.light_loop import accumulate_light_lists, compose_radiance, view_directions
-from gpupro.sort import key_runs
+from gpupro.sort import key_runs, search_sorted
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
@@ -442,7 +442,7 @@ def grid_candidates(lights: Lights, camera: Camera, clusters: Clusters, *, tile:
     dz, rest = local % nz[light], local // nz[light]
     dx, dy = rest % nx[light], rest // nx[light]
     key = ((k0[light] + dz) * tiles_y + y0[light] + dy) * tiles_x + x0[light] + dx
-    found = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1)
+    found = jnp.clip(search_sorted(keys, key), 0, keys.shape[0] - 1)
     cluster = by_key[found].astype(jnp.int32)
     valid = (jnp.arange(grid_capacity) < ends[-1]) & (keys[found] == key) & clusters.valid[cluster]
     return cluster, light, valid, total
