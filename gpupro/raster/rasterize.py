@@ -157,9 +157,9 @@ RESOLVE_METHODS = ("chunks", "kernel")
 
 
 def _check_resolve(value) -> str:
-    """``resolve``: one of :data:`RESOLVE_METHODS`, or None for "chunks"."""
+    """``resolve``: one of :data:`RESOLVE_METHODS`, or None: "kernel" on GPUs, "chunks" elsewhere."""
     if value is None:
-        return "chunks"
+        return "kernel" if jax.default_backend() == "gpu" else "chunks"
     if value not in RESOLVE_METHODS:
         raise ValueError(f"rasterize: resolve must be one of {RESOLVE_METHODS} or None, got {value!r}")
     return value
@@ -275,7 +275,8 @@ def rasterize(
         (one Pallas kernel program per tile walks its whole list, :mod:`gpupro.raster.tile_kernel`;
         ``tile_capacity``, ``chunk_batch`` and ``tail_batch`` then do not apply, and ``tile_chunks``
         counts the non-empty tile lists; the fast form on GPUs, where each step of the chunk loops is a
-        round trip to the host; off GPUs it runs in Pallas' interpreter, for tests), or None: "chunks".
+        round trip to the host; off GPUs it runs in Pallas' interpreter, for tests), or None: "kernel"
+        on GPUs, "chunks" elsewhere.
         The images are the same bit for bit.
       floor: None, or ``(depth, triangle_id)``, float32 and integer [H, W] ([H, W, S] multisampled): a
         depth-peeling floor. Only fragments strictly after it in (window depth, triangle id) order are

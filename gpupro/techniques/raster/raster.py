@@ -92,7 +92,7 @@ register(Technique(
                                                          "(0: as a chunk); none: the number of tiles on CPUs from 1,024 tiles, else 0"),
         Option("resolve", None, optional(one_of(*RESOLVE_METHODS)),
                "how tile lists are resolved: chunks (XLA loops) or kernel (one Pallas program per tile, the fast "
-               "form on GPUs; interpreted elsewhere); none: chunks"),
+               "form on GPUs; interpreted elsewhere); none: kernel on GPUs, chunks elsewhere"),
     ),
     capacities=(
         Capacity("tile_capacity", "tiles_overflowed", "tiles holding more triangles take several chunks", lossy=False),
