@@ -17,8 +17,11 @@ Same arithmetic as the XLA path, sample for sample: snapped triangles are tested
 edge functions (:func:`gpupro.raster.setup.edge_threshold` with the sample itself as the base point, so
 no per-block thresholds are needed), their depth is :func:`gpupro.raster.setup.affine_depth` (exact
 products, so the depth bits do not depend on the compiler), and other triangles use
-:func:`gpupro.raster.setup.homogeneous_coverage`. Triton blocks cannot have trailing axes of 3, so each
-per-triangle field is passed as one flat array per component.
+:func:`gpupro.raster.setup.homogeneous_coverage`. The per-triangle fields travel as two flat tables, one
+int32 and one float32, component-major (:func:`triangle_table`), built once per call before the binning
+passes: Triton blocks cannot have trailing axes of 3, and passing each component as its own array made
+XLA copy every row of the setup into a buffer of its own before each launch (36 small copies a call in
+a profile on the H200, docs/benchmarks.md).
 
 On the CPU the kernel runs in Pallas' interpreter (``interpret=True``), which the tests use to check it
 against the brute-force reference; :func:`gpupro.raster.rasterize` uses it with ``resolve="kernel"``.
@@ -50,20 +53,19 @@ SAMPLES_PER_WARP = 128
 9.52 / 15.70; 256 samples (4× MSAA) at 100k, 640×360: 2.11 / 1.99 / 1.98 / 2.26."""
 
 
-def _triangle_fields(setup: TriangleSetup) -> dict:
-    """The per-triangle data the kernel reads, one flat [F] array per component (bools as int32)."""
-    fields = {"visible": setup.visible.astype(jnp.int32), "snapped": setup.snapped.astype(jnp.int32)}
-    for i in range(3):
-        fields[f"owns{i}"] = setup.owns_edge[i].astype(jnp.int32)
-        fields[f"plane{i}"] = setup.plane[i]
-        fields[f"coef{i}"] = setup.depth_coef[i]
-        for j in range(2):
-            fields[f"fixed{i}{j}"] = setup.fixed[i, j]
-            fields[f"step{i}{j}"] = setup.fixed_edges[i, j]
-            fields[f"origin{i}{j}"] = setup.edge_origin[i, j]
-        for j in range(3):
-            fields[f"edge{i}{j}"] = setup.edges[i, j]
-    return fields
+INT_FIELDS = ("visible", "snapped", "owns0", "owns1", "owns2", *(f"{name}{i}{j}" for name in ("fixed", "step")
+                                                                 for i in range(3) for j in range(2)))
+FLOAT_FIELDS = (*(f"{name}{i}" for name in ("plane", "coef") for i in range(3)),
+                *(f"origin{i}{j}" for i in range(3) for j in range(2)), *(f"edge{i}{j}" for i in range(3) for j in range(3)))
+
+
+def triangle_table(setup: TriangleSetup) -> tuple[jax.Array, jax.Array]:
+    """The per-triangle data the kernel reads: int32 [len(INT_FIELDS) F] and float32 [len(FLOAT_FIELDS) F],
+    component c of triangle t at ``c F + t`` (bools as 0/1), for F triangles."""
+    ints = jnp.concatenate([setup.visible[None].astype(jnp.int32), setup.snapped[None].astype(jnp.int32),
+                            setup.owns_edge.astype(jnp.int32), setup.fixed.reshape(6, -1), setup.fixed_edges.reshape(6, -1)])
+    floats = jnp.concatenate([setup.plane, setup.depth_coef, setup.edge_origin.reshape(6, -1), setup.edges.reshape(9, -1)])
+    return ints.reshape(-1), floats.reshape(-1)
 
 
 def _coverage(f: dict, sample_x, sample_y):
@@ -82,12 +84,12 @@ def _coverage(f: dict, sample_x, sample_y):
                            float_depth)
 
 
-def _tile_kernel(*refs, names: tuple, lanes: int, tile_step: int, tiles_x: int, has_floor: bool):
+def _tile_kernel(*refs, num_faces: int, lanes: int, tile_step: int, tiles_x: int, has_floor: bool):
     start_ref, count_ref, tri_ref, rel_x_ref, rel_y_ref, z_ref, id_ref = refs[:7]
     refs = refs[7:]
     if has_floor:
         floor_z_ref, floor_id_ref, refs = refs[0], refs[1], refs[2:]
-    field_refs, (z_out, id_out) = refs[:len(names)], refs[len(names):]
+    ints_ref, floats_ref, z_out, id_out = refs
     t = pl.program_id(0)
     every = jnp.full((lanes,), t, jnp.int32)  # vector reads of per-tile scalars: one address in every lane
     start, count = start_ref[every], count_ref[every]
@@ -98,7 +100,9 @@ def _tile_kernel(*refs, names: tuple, lanes: int, tile_step: int, tiles_x: int, 
     def step(j, best):
         best_z, best_id = best
         tri = tri_ref[start + j]
-        covered, depth = _coverage({name: r[tri] for name, r in zip(names, field_refs)}, sample_x, sample_y)
+        fields = {name: ints_ref[c * num_faces + tri] for c, name in enumerate(INT_FIELDS)}
+        fields.update({name: floats_ref[c * num_faces + tri] for c, name in enumerate(FLOAT_FIELDS)})
+        covered, depth = _coverage(fields, sample_x, sample_y)
         if floor is not None:  # a depth-peeling pass
             covered &= above_floor(depth, tri, *floor)
         nearer = covered & ((depth < best_z) | ((depth == best_z) & (tri < best_id)))
@@ -109,11 +113,11 @@ def _tile_kernel(*refs, names: tuple, lanes: int, tile_step: int, tiles_x: int, 
     id_out[...] = best_id
 
 
-def resolve_tiles(setup: TriangleSetup, zbuf, ids, tile_start, counts, tri_sorted, positions, *, tile: int,
+def resolve_tiles(table: tuple[jax.Array, jax.Array], zbuf, ids, tile_start, counts, tri_sorted, positions, *, tile: int,
                   tiles_x: int, floor=None, interpret: bool = False):
     """Resolves every tile's list into the z-buffer, one kernel program per tile.
 
-    ``zbuf`` float32 and ``ids`` int32 [tiles, T² S] in the tiled layout of
+    ``table``: :func:`triangle_table` of the setup; ``zbuf`` float32 and ``ids`` int32 [tiles, T² S] in the tiled layout of
     :func:`gpupro.raster.tiled.to_tile_layout` (+inf and NO_TRIANGLE where empty); tile t's list is
     ``counts[t]`` triangle indices from ``tile_start[t]`` in ``tri_sorted`` (int32), in increasing order;
     ``positions``: (x, y) int32 [T² S], each sample's position in its tile (1/16 pixel, from the tile's
@@ -124,7 +128,7 @@ def resolve_tiles(setup: TriangleSetup, zbuf, ids, tile_start, counts, tri_sorte
     cut from differentiation; the chunked resolve's ``while`` loops cannot be reverse-differentiated
     either, and callers interpolate from the triangle setup instead).
     """
-    setup, zbuf, ids, floor = jax.lax.stop_gradient((setup, zbuf, ids, floor))
+    (ints, floats), zbuf, ids, floor = jax.lax.stop_gradient((table, zbuf, ids, floor))
     num_tiles, tile_samples = zbuf.shape
     lanes = 1 << (tile_samples - 1).bit_length()  # Triton blocks are powers of two
     pad = lambda a, fill: jnp.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, lanes - tile_samples)], constant_values=fill)
@@ -132,20 +136,19 @@ def resolve_tiles(setup: TriangleSetup, zbuf, ids, tile_start, counts, tri_sorte
     per_tile = [pad(zbuf, jnp.inf).reshape(-1), pad(ids, NO_TRIANGLE).reshape(-1)]
     if floor is not None:
         per_tile += [pad(floor[0], jnp.inf).reshape(-1), pad(floor[1], NO_TRIANGLE).reshape(-1)]
-    fields = _triangle_fields(setup)
     tile_spec = pl.BlockSpec((lanes,), lambda t: (t,))
     whole = lambda a: pl.BlockSpec(a.shape, lambda t: (0,))
     lists = [jnp.asarray(tile_start, jnp.int32), jnp.asarray(counts, jnp.int32), jnp.asarray(tri_sorted, jnp.int32)]
     z_out, id_out = pl.pallas_call(
-        functools.partial(_tile_kernel, names=tuple(fields), lanes=lanes, tile_step=16 * tile, tiles_x=tiles_x,
+        functools.partial(_tile_kernel, num_faces=ints.shape[0] // len(INT_FIELDS), lanes=lanes, tile_step=16 * tile, tiles_x=tiles_x,
                           has_floor=floor is not None),
         out_shape=(jax.ShapeDtypeStruct((num_tiles * lanes,), jnp.float32),
                    jax.ShapeDtypeStruct((num_tiles * lanes,), jnp.int32)),
         grid=(num_tiles,),
         in_specs=[whole(a) for a in lists] + [whole(rel_x), whole(rel_y)] + [tile_spec] * len(per_tile)
-        + [whole(a) for a in fields.values()],
+        + [whole(ints), whole(floats)],
         out_specs=(tile_spec, tile_spec),
         compiler_params=plt.CompilerParams(num_warps=max(1, lanes // SAMPLES_PER_WARP)),
         interpret=interpret,
-    )(*lists, rel_x, rel_y, *per_tile, *fields.values())
+    )(*lists, rel_x, rel_y, *per_tile, ints, floats)
     return z_out.reshape(num_tiles, lanes)[:, :tile_samples], id_out.reshape(num_tiles, lanes)[:, :tile_samples]

@@ -52,7 +52,7 @@ from gpupro.raster.setup import (
     prepare,
     sample_offsets,
 )
-from gpupro.raster.tile_kernel import resolve_tiles
+from gpupro.raster.tile_kernel import resolve_tiles, triangle_table
 from gpupro.sort import key_runs, sort_by_bounded_key
 
 SNAP_MARGIN = 1.0 / 64
@@ -313,6 +313,7 @@ def rasterize_tiled(
     if floor is not None:
         floor = tuple(to_tile_layout(f, tile=tile, samples=samples) for f in floor)
     positions = _tile_sample_positions(tile, samples) if kernel else None
+    table = triangle_table(setup) if kernel else None  # once, not in every pass
 
     def bin_pass(state):
         base, zbuf, ids, stats = state
@@ -337,7 +338,7 @@ def rasterize_tiled(
         tile_key, tri_sorted = sort_by_bounded_key(tile_key, owner, key_bound=num_tiles)
         tile_start, counts = key_runs(tile_key, groups=num_tiles)
         if kernel:  # each tile's list as one work item
-            zbuf, ids = resolve_tiles(setup, zbuf, ids, tile_start, counts, tri_sorted, positions, tile=tile,
+            zbuf, ids = resolve_tiles(table, zbuf, ids, tile_start, counts, tri_sorted, positions, tile=tile,
                                       tiles_x=tiles_x, floor=floor, interpret=interpret)
             total_chunks, tail_pairs = jnp.sum(counts > 0).astype(jnp.int32), jnp.int32(0)
         else:
