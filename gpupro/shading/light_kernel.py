@@ -36,6 +36,7 @@ import functools
 import jax
 import jax.numpy as jnp
 from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plt
 
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
@@ -57,6 +58,10 @@ BLOCK_PIXELS = 256
 """Pixels per kernel program (a power of two, as Triton's blocks must be)."""
 LIGHTS_PER_STEP = 1
 """Lights read and evaluated per loop step of a program (a power of two)."""
+TRITON = plt.CompilerParams()
+"""The kernels' backend, named: with no compiler parameters ``pallas_call`` picks JAX's default GPU backend,
+which is Mosaic GPU where ``jax_pallas_use_mosaic_gpu`` is on (the default in JAX 0.10), and these kernels'
+blocks (a few floats per light, 128–256 pixels) do not lower there. Triton's default warps and stages."""
 
 
 def _components(x) -> list:
@@ -234,6 +239,7 @@ def light_sums(columns: list, lights: Lights, term, *, test: GroupTest | None = 
         in_specs=([pixel_spec] * len(columns) + [group_spec(a) for a in group_arrays]
                   + [pl.BlockSpec(a.shape, lambda i: (0,)) for a in light_arrays]),
         out_specs=[pixel_spec] * n_outputs,
+        compiler_params=TRITON,
         interpret=interpret,
     )(*columns, *group_arrays, *light_arrays)
     out = [o.reshape(groups, padded)[:, :per_group].reshape(-1) for o in out]
@@ -349,6 +355,7 @@ def list_sums(columns: list, lights: Lights, term, lists, rows, *, block_pixels:
         grid=(padded // block_pixels,),
         in_specs=[point_spec] * len(point_arrays) + [whole(slots)] + [whole(a) for a in light_arrays],
         out_specs=[point_spec] * n_out,
+        compiler_params=TRITON,
         interpret=interpret,
     )(*point_arrays, slots, *light_arrays)
     radiance = jnp.stack(out[:3], axis=-1)[:n_points]
@@ -447,6 +454,7 @@ def tile_list_hits(points, covered, lists, lights: Lights, *, interpret: bool = 
         in_specs=[pl.BlockSpec((width,), lambda t: (t,))] * 4 + [pl.BlockSpec((slots,), lambda t: (t,))]
         + [whole(a) for a in light_arrays],
         out_specs=pl.BlockSpec((slots,), lambda t: (t,)),
+        compiler_params=TRITON,
         interpret=interpret,
     )(*point_arrays, padded_lists, *light_arrays)
     return (hits.reshape(n_tiles, slots)[:, :capacity] > 0) & (lists >= 0)
