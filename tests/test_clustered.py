@@ -10,7 +10,8 @@ import pytest
 from gpupro.scene import SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.clustered import (
-    NO_KEY, assign_lights, build_clusters, cluster_keys, implicit_bounds, shade_clustered, slice_depths, to_view,
+    CONE_MARGIN, NO_KEY, assign_lights, build_clusters, cluster_keys, explicit_cones, implicit_bounds, shade_clustered,
+    slice_depths, to_view,
 )
 from gpupro.techniques.lights.unique_clusters import find_clusters
 from gpupro.techniques.lights.deferred import shade_deferred
@@ -199,6 +200,31 @@ def test_unique_clusters_and_explicit_bounds_against_numpy():
         np.testing.assert_array_equal(lower[c], members.min(0))
         np.testing.assert_array_equal(upper[c], members.max(0))
         assert (np.asarray(implicit.lower)[c] <= lower[c]).all() and (upper[c] <= np.asarray(implicit.upper)[c]).all()
+
+
+def test_explicit_cones_hold_their_normals_to_float_precision():
+    """Cone half-angles against float64 angles to the cone's own axis: two spread clusters, and 20 flat
+    ones (one normal 7 times each), whose cones must be the margin alone, in any summation order (an
+    arccos of the cosine gave 3.45e-4 rad for one ulp below 1)."""
+    rng = np.random.default_rng(4)
+    spread = rng.normal(size=(40, 3)) * np.array([0.3, 0.3, 1.0])  # clusters 0 and 1: normals around +z
+    flat = np.repeat(rng.normal(size=(20, 3)), 7, axis=0)  # clusters 2..21
+    normals = np.concatenate([spread, flat]).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cluster = np.concatenate([np.arange(40) % 2, 2 + np.arange(140) // 7]).astype(np.int32)
+    cluster[5] = -1  # an uncovered sample belongs to no cone
+    axis, half_angle = (np.asarray(a) for a in explicit_cones(jnp.asarray(normals), jnp.asarray(cluster), capacity=23))
+    for c in range(22):
+        members = normals[cluster == c].astype(np.float64)
+        members /= np.linalg.norm(members, axis=1, keepdims=True)
+        a = axis[c].astype(np.float64) / np.linalg.norm(axis[c].astype(np.float64))
+        expected = np.max(np.arctan2(np.linalg.norm(np.cross(members, a), axis=1), members @ a))
+        np.testing.assert_allclose(half_angle[c] - CONE_MARGIN, expected, atol=1e-6, err_msg=f"cluster {c}")
+    assert np.all(half_angle[2:22] - CONE_MARGIN < 1e-6) and np.all(half_angle[:2] > 0.3)
+    assert half_angle[22] == np.float32(np.pi)  # an empty slot
+    order = rng.permutation(len(normals))
+    _, shuffled = explicit_cones(jnp.asarray(normals[order]), jnp.asarray(cluster[order]), capacity=23)
+    np.testing.assert_allclose(np.asarray(shuffled), half_angle, atol=1e-6)
 
 
 def test_light_tree_nodes_hold_their_children_and_leaves_are_morton_sorted():

@@ -271,15 +271,19 @@ def explicit_bounds(view_position, pixel_cluster, *, capacity: int):
 def explicit_cones(view_normal, pixel_cluster, *, capacity: int):
     """Normal cones of the samples' unit normals [P, 3] of each cluster: axis = normalised mean normal
     [capacity, 3], half-angle [capacity] = the largest angle to a member normal (+ :data:`CONE_MARGIN`;
-    π where the mean is nearly zero or the slot is empty)."""
+    π where the mean is nearly zero or the slot is empty).
+
+    The angle between unit vectors is taken from their distance, 2 arcsin(‖n − axis‖ / 2), not as
+    arccos(n · axis): near 0 arccos turns one float32 ulp of the cosine into 3.45e-4 rad, so a flat
+    cluster's cone depended on the order its normals were summed in."""
     segment = jnp.where(pixel_cluster < 0, capacity, pixel_cluster)
     total = jax.ops.segment_sum(view_normal, segment, num_segments=capacity + 1)
     length = jnp.linalg.norm(total, axis=-1, keepdims=True)
     axis = total / jnp.maximum(length, 1e-30)
-    cosine = jnp.sum(view_normal * axis[segment], axis=-1)
-    cos_min = jax.ops.segment_min(cosine, segment, num_segments=capacity + 1)
-    angle = jnp.arccos(jnp.clip(cos_min, -1.0, 1.0)) + CONE_MARGIN
-    angle = jnp.where((length[:, 0] > 1e-3) & jnp.isfinite(cos_min), angle, jnp.pi)
+    chord = jnp.linalg.norm(view_normal - axis[segment], axis=-1)
+    chord_max = jax.ops.segment_max(chord, segment, num_segments=capacity + 1)
+    angle = 2.0 * jnp.arcsin(jnp.clip(chord_max / 2.0, 0.0, 1.0)) + CONE_MARGIN
+    angle = jnp.where((length[:, 0] > 1e-3) & jnp.isfinite(chord_max), angle, jnp.pi)
     return axis[:capacity], angle[:capacity]
 
 
