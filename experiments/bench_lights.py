@@ -18,6 +18,7 @@ Usage::
     python experiments/bench_lights.py --techniques clustered_deferred --option clustered_deferred.unique_clusters='"page_table"' \
         --option clustered_deferred.list_layout='"packed"'        # Paper II's Pt variant with packed lists
     python experiments/bench_lights.py --techniques tiled_deferred --option 'tiled_deferred.kernel="single"'
+    python experiments/bench_lights.py --techniques clustered_deferred --lights 2400 --profile 20   # kernel by kernel
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import tomllib
 import jax
 
 import gpupro as gp
-from gpupro.bench import device_info, peak_memory_bytes, time_function, time_pass
+from gpupro.bench import device_info, format_kernel_table, peak_memory_bytes, time_function, time_pass
 from gpupro.pipeline import pipeline_for
 from gpupro.scene.light_generators import uniform_in_box
 from gpupro.technique import registered
@@ -115,12 +116,13 @@ STAGES = {"clustered_deferred": _clustered_stages, "tiled_deferred": _tiled_stag
 """Techniques whose stages are timed apart: id → f(pass inputs, scene, options) → {stage: (jitted fn, args)}."""
 
 
-def time_technique(technique_id: str, scene, options: dict, repeats: int, *, shade: bool = True) -> dict:
+def time_technique(technique_id: str, scene, options: dict, repeats: int, *, shade: bool = True,
+                   profile: bool = False) -> dict:
     """Times ``technique_id``'s pass alone on ``scene`` at the capacities it needs (with ``shade``;
-    else only its counters are read, from one call), and its stages (see :data:`STAGES`); returns a
-    table row."""
+    else only its counters are read, from one call), and its stages (see :data:`STAGES`); with
+    ``profile`` the pass kernel by kernel too (:func:`gpupro.bench.kernel_times`); returns a table row."""
     row, pipeline, inputs = time_pass(pipeline_for(technique_id, outputs=("hdr",), **options), scene, technique_id,
-                                      repeats=repeats if shade else 1)
+                                      repeats=repeats if shade else 1, profile=profile)
     stages = {}
     for stage, (fn, args) in STAGES.get(technique_id, lambda *_: {})(inputs, scene, pipeline[technique_id].options).items():
         t = time_function(fn, *args, repeats=repeats)
@@ -138,6 +140,8 @@ def main(argv=None) -> list[dict]:
     parser.add_argument("--spot-fraction", type=float, default=0.0, help="fraction of spot lights")
     parser.add_argument("--option", action="append", default=[], help="TECHNIQUE.OPTION=VALUE (repeatable)")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--profile", type=int, default=0, metavar="N",
+                        help="also trace each pass kernel by kernel and print its N slowest kernels")
     parser.add_argument("--json", help="write the results to this file")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.resolution.lower().split("x"))
@@ -152,7 +156,8 @@ def main(argv=None) -> list[dict]:
         lights = uniform_in_box(jax.random.PRNGKey(0), count, lo, hi, light_range=args.range, intensity=3.0,
                                 spot_fraction=args.spot_fraction)
         lit = scene.replace(lights=lights)
-        rows = [dict(time_technique(t, lit, options.get(t, {}), args.repeats), lights=count) for t in techniques]
+        rows = [dict(time_technique(t, lit, options.get(t, {}), args.repeats, profile=args.profile > 0), lights=count)
+                for t in techniques]
         brute = next((r["run_ms_median"] for r in rows if r["technique"] == "deferred"), None)
         for r in rows:
             r["vs_deferred"] = None if brute is None else brute / r["run_ms_median"]
@@ -171,6 +176,8 @@ def main(argv=None) -> list[dict]:
         for stage, t in r["stages"].items():
             print(f"{'':>7}   {stage:<18} {t['compile_s']:>9.2f} {t['run_ms_median']:>10.2f} {t['run_ms_min']:>9.2f} "
                   f"{t['run_ms_max']:>9.2f}")
+        if "kernels" in r:
+            print(format_kernel_table(r["kernels"], top=args.profile))
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": device, "results": results}, f, indent=2)

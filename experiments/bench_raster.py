@@ -36,6 +36,7 @@ Usage::
     python experiments/bench_raster.py --all --json out.json # 10k, 100k, 1M × 640x360, 1920x1080
     python experiments/bench_raster.py --sizes 200 --resolutions 32x32 --repeats 2 --no-gl
     python experiments/bench_raster.py --all --samples 4                 # also 4× MSAA, its cost over 1×
+    python experiments/bench_raster.py --sizes 10000 --profile 30        # where the time goes, kernel by kernel
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.bench import device_info, peak_memory_bytes, time_function
+from gpupro.bench import device_info, format_kernel_table, kernel_times, peak_memory_bytes, time_function
 from gpupro.raster.rasterize import RESOLVE_METHODS, rasterize
 
 ALL_SIZES = (10_000, 100_000, 1_000_000)
@@ -86,9 +87,10 @@ def triangle_soup(num_triangles: int, width: int, height: int, *, mean_area: flo
 
 
 def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: int, tile_capacity: int,
-                 samples: int = 1, resolve: str | None = None) -> tuple[dict, np.ndarray]:
-    """Times jitted ``rasterize`` at ``samples`` per pixel (``resolve``: its option of that name); returns
-    (results, triangle ids [H, W(, S)])."""
+                 samples: int = 1, resolve: str | None = None, profile: int = 0) -> tuple[dict, np.ndarray]:
+    """Times jitted ``rasterize`` at ``samples`` per pixel (``resolve``: its option of that name), and with
+    ``profile`` > 0 traces it kernel by kernel (:func:`gpupro.bench.kernel_times`, under "kernels") and
+    prints its ``profile`` slowest kernels; returns (results, triangle ids [H, W(, S)])."""
     faces = np.arange(clip.shape[0], dtype=np.int32).reshape(-1, 3)
     fn = jax.jit(lambda c, f: rasterize(c, f, resolution=(height, width), samples=samples, tile=tile,
                                         tile_capacity=tile_capacity, resolve=resolve))
@@ -96,6 +98,9 @@ def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: 
     frags = timing.pop("result")
     timing["counters"] = {k: int(v) for k, v in frags.counters.items()}
     timing["peak_memory"] = peak_memory_bytes()
+    if profile:
+        timing["kernels"] = kernel_times(fn, jnp.asarray(clip), jnp.asarray(faces), calls=repeats)
+        print(format_kernel_table(timing["kernels"], top=profile), flush=True)
     return timing, np.asarray(frags.triangle_id)
 
 
@@ -183,6 +188,8 @@ def main(argv: list[str] | None = None) -> None:
                         help="also time this many samples per pixel (2, 4 or 8) and report its cost over 1 sample")
     parser.add_argument("--resolve", choices=RESOLVE_METHODS,
                         help="how rasterize resolves the tiles' lists (default: kernel on GPUs, chunks elsewhere)")
+    parser.add_argument("--profile", type=int, default=0, metavar="N",
+                        help="also trace each single-sample case kernel by kernel and print its N slowest kernels")
     parser.add_argument("--no-gl", action="store_true", help="skip the OpenGL column")
     parser.add_argument("--json", help="write all results to this file")
     args = parser.parse_args(argv)
@@ -204,7 +211,8 @@ def main(argv: list[str] | None = None) -> None:
     for n, width, height in cases:
         clip = triangle_soup(n, width, height, mean_area=args.area, seed=args.seed)
         print(f"{n} triangles at {width}x{height} ...", flush=True)
-        gp, gp_ids = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity, resolve=args.resolve)
+        gp, gp_ids = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity, resolve=args.resolve,
+                                  profile=args.profile)
         case = {"triangles": n, "resolution": f"{width}x{height}", "gpupro": gp}
         if args.samples > 1:
             case["gpupro_multisampled"], _ = bench_gpupro(clip, width, height, args.repeats, args.tile, args.tile_capacity,

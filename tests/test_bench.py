@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from gpupro.bench import device_info, peak_memory_bytes, time_function
+from gpupro.bench import device_info, format_kernel_table, kernel_times, peak_memory_bytes, time_function
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
@@ -24,6 +24,23 @@ def test_time_function_fields():
     assert float(timing["result"][1]) == 16.0
 
 
+def test_kernel_times_count_each_kernel_by_its_own_time():
+    """A loop of 7 steps: its body's fusion has a row of 7 launches a call, and the loop's own row leaves
+    that time out (self time, on CPUs; on GPUs the loop is no kernel at all)."""
+    step = lambda i, y: jnp.sin(y) * 1.5 + y * i
+    fn = jax.jit(lambda x: jax.lax.fori_loop(0, 7, step, x).sum())
+    times = kernel_times(fn, jnp.ones(1 << 16), calls=3)
+    rows = times["rows"]
+    assert times["calls"] == 3 and rows and all(r["us"] >= 0 for r in rows)
+    assert [r["us"] for r in rows] == sorted((r["us"] for r in rows), reverse=True)
+    assert abs(times["busy_us"] - sum(r["us"] for r in rows)) < 1e-6
+    body = max((r for r in rows if r["per_call"] == 7), key=lambda r: r["us"])
+    loops = [r for r in rows if r["kernel"].startswith("while")]
+    assert all(loop["per_call"] == 1 and loop["us"] < body["us"] for loop in loops)
+    table = format_kernel_table(times, top=2)
+    assert table.splitlines()[0].startswith(f"{times['busy_us']:.1f} us of kernels a call") and body["kernel"] in table
+
+
 def test_device_info_and_memory():
     info = device_info()
     assert info["backend"] == jax.default_backend() and info["num_devices"] >= 1 and info["device_kind"]
@@ -34,12 +51,13 @@ def test_device_info_and_memory():
 def test_bench_raster_script_runs():
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     run = subprocess.run(
-        [sys.executable, str(ROOT / "experiments" / "bench_raster.py"), "--sizes", "200", "--resolutions", "32x32", "--repeats", "2", "--no-gl"],
+        [sys.executable, str(ROOT / "experiments" / "bench_raster.py"), "--sizes", "200", "--resolutions", "32x32", "--repeats", "2", "--no-gl",
+         "--profile", "3"],
         # A fresh process compiles everything (on GPUs the tile kernel too) while the suite's other workers load the machine.
         capture_output=True, text=True, timeout=120, env=env, cwd=ROOT,
     )
     assert run.returncode == 0, run.stderr
-    assert "median ms" in run.stdout and "OpenGL: skipped" in run.stdout
+    assert "median ms" in run.stdout and "OpenGL: skipped" in run.stdout and "kernels a call" in run.stdout
     row = [line for line in run.stdout.splitlines() if line.split()[:2] == ["200", "32x32"]]
     assert len(row) == 1
 
@@ -49,7 +67,7 @@ def test_bench_lights_times_the_pass_and_its_stages(tmp_path):
     bench = runpy.run_path(str(ROOT / "experiments" / "bench_lights.py"))  # not as __main__: defines main only
     out = tmp_path / "lights.json"
     results = bench["main"](["--techniques", "deferred,fptl", "--lights", "4", "--resolution", "32x32", "--repeats", "1",
-                             "--json", str(out)])
+                             "--profile", "3", "--json", str(out)])
     brute, fptl = results
     assert (brute["technique"], fptl["technique"]) == ("deferred", "fptl") and brute["stages"] == {}
     assert set(fptl["stages"]) == {"coarse lists", "fine pruning"}
@@ -57,3 +75,4 @@ def test_bench_lights_times_the_pass_and_its_stages(tmp_path):
     assert 0 < fptl["counters"]["lighting_computations"] <= brute["counters"]["lighting_computations"]
     assert fptl["vs_deferred"] == brute["run_ms_median"] / fptl["run_ms_median"]
     assert json.loads(out.read_text())["results"][1]["stages"].keys() == fptl["stages"].keys()
+    assert fptl["kernels"]["busy_us"] > 0 and fptl["kernels"]["rows"]
