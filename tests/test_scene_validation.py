@@ -88,3 +88,14 @@ def test_traced_scene_is_skipped():
         return s.lights.color.sum()
 
     assert np.isnan(total(bad))
+
+
+@pytest.mark.parametrize("field, value", [("position", [[0.0, 0.0, 0.0]] * 3), ("color", [[1.0, 1.0]]),
+                                          ("range", [1.0, 2.0, 3.0]), ("outer_angle_degrees", [40.0] * 3),
+                                          ("length", [[0.5, 0.5]])])
+def test_light_values_that_do_not_broadcast_are_named(field, value):
+    with pytest.raises(ValueError, match=rf"^lights: {field} of shape \(.*\) does not broadcast to \(2.*\(2 lights"):
+        make_lights([POINT, SPOT], **{field: value})
+    one = make_lights([POINT, SPOT], color=[2.0, 1.0, 0.5], range=4.0)  # one value for every light
+    np.testing.assert_array_equal(np.asarray(one.color), [[2.0, 1.0, 0.5]] * 2)
+    np.testing.assert_array_equal(np.asarray(one.range), [4.0, 4.0])

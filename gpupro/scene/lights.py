@@ -69,7 +69,8 @@ def make_lights(
     ``kind`` [N] of POINT/SPOT/DIRECTIONAL/CAPSULE; ``position``, ``direction``, ``color`` [N, 3];
     ``range`` [N] finite and > 0 (ignored for directional lights); spot cone half-angles in degrees
     with 0 <= inner <= outer < 90; ``length`` [N] capsule half-lengths, finite and >= 0 (default 0;
-    ignored, i.e. 0, for the other kinds).
+    ignored, i.e. 0, for the other kinds). Each value broadcasts to its shape (one [3] colour or one
+    range for every light); one that does not is refused, naming it.
     """
     k = np.atleast_1d(np.asarray(kind, np.int32))
     n = k.shape[0]
@@ -77,8 +78,16 @@ def make_lights(
         raise ValueError("lights: kind must be POINT (0), SPOT (1), DIRECTIONAL (2) or CAPSULE (3), "
                          f"got {sorted(set(k.tolist()))}")
 
+    def per_light(value, default, name, shape):
+        arr = np.asarray(default if value is None else value, np.float32)
+        try:
+            return np.broadcast_to(arr, shape).copy()
+        except ValueError:
+            raise ValueError(f"lights: {name} of shape {arr.shape} does not broadcast to {shape} "
+                             f"({n} lights, from kind)") from None
+
     def vec(value, default, name):
-        arr = np.broadcast_to(np.asarray(default if value is None else value, np.float32), (n, 3)).copy()
+        arr = per_light(value, default, name, (n, 3))
         if not np.isfinite(arr).all():
             raise ValueError(f"lights: {name} has NaN or infinite values")
         return arr
@@ -92,15 +101,15 @@ def make_lights(
     col = vec(color, (1.0, 1.0, 1.0), "color")
     if (col < 0).any():
         raise ValueError("lights: color must be non-negative")
-    rng = np.broadcast_to(np.asarray(10.0 if range is None else range, np.float32), (n,)).copy()
+    rng = per_light(range, 10.0, "range", (n,))
     rng = np.where(k == DIRECTIONAL, np.inf, rng).astype(np.float32)
     if not (np.isfinite(rng[k != DIRECTIONAL]) & (rng[k != DIRECTIONAL] > 0)).all():
         raise ValueError("lights: range must be finite and > 0 for point, spot and capsule lights")
-    inner = np.broadcast_to(np.asarray(30.0 if inner_angle_degrees is None else inner_angle_degrees, np.float32), (n,))
-    outer = np.broadcast_to(np.asarray(45.0 if outer_angle_degrees is None else outer_angle_degrees, np.float32), (n,))
+    inner = per_light(inner_angle_degrees, 30.0, "inner_angle_degrees", (n,))
+    outer = per_light(outer_angle_degrees, 45.0, "outer_angle_degrees", (n,))
     if ((inner < 0) | (inner > outer) | (outer >= 90)).any():
         raise ValueError("lights: spot cones need 0 <= inner_angle <= outer_angle < 90 degrees")
-    half = np.broadcast_to(np.asarray(0.0 if length is None else length, np.float32), (n,))
+    half = per_light(length, 0.0, "length", (n,))
     if not (np.isfinite(half) & (half >= 0)).all():
         raise ValueError("lights: length (a capsule's half-length) must be finite and >= 0")
     return Lights(
