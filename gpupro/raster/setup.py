@@ -51,7 +51,11 @@ snapped vertices, z_w(p) = z_0 + ∂z/∂x (p_x − x_0) + ∂z/∂y (p_y − y_
 float32 products that are exact (:func:`exact_products`), so that no compiler's fused multiply-adds
 change it and every rasterizer computes the same bits; it is exactly z_0 where the three vertices
 share a depth. Other triangles (a vertex behind the eye or past the guard band, where hardware clips)
-keep the homogeneous float test above (skipped when none is in view). Perspective-correct
+keep the homogeneous float test above (skipped when none is in view). Its products are not exact, so
+its coverage and depth are the same bits in every program only where the compiler fuses multiply-adds
+alike everywhere: XLA's default does, on CPUs and GPUs; at LLVM level 0
+(``--xla_backend_optimization_level=0``) XLA:CPU fuses them in some kernels and not in others, and
+tiled and reference depths of such a triangle differ by an ulp. Perspective-correct
 interpolation uses the homogeneous form with the snapped positions, w · (X/256, Y/256, 1), of snapped
 triangles (the snap entering as a constant, so gradients are those of the float positions).
 """
