@@ -26,10 +26,11 @@ def test_time_function_fields():
 
 def test_kernel_times_count_each_kernel_by_its_own_time():
     """A loop of 7 steps: its body's fusion has a row of 7 launches a call, and the loop's own row leaves
-    that time out (self time, on CPUs; on GPUs the loop is no kernel at all)."""
+    that time out (self time, on CPUs; on GPUs the loop is no kernel at all). The trip count is an
+    argument, so that no compiler unrolls the loop."""
     step = lambda i, y: jnp.sin(y) * 1.5 + y * i
-    fn = jax.jit(lambda x: jax.lax.fori_loop(0, 7, step, x).sum())
-    times = kernel_times(fn, jnp.ones(1 << 16), calls=3)
+    fn = jax.jit(lambda x, steps: jax.lax.fori_loop(0, steps, step, x).sum())
+    times = kernel_times(fn, jnp.ones(1 << 16), jnp.int32(7), calls=3)
     rows = times["rows"]
     assert times["calls"] == 3 and rows and all(r["us"] >= 0 for r in rows)
     assert [r["us"] for r in rows] == sorted((r["us"] for r in rows), reverse=True)
