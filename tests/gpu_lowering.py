@@ -3,9 +3,10 @@ with no GPU: ``python tests/gpu_lowering.py [technique ...]``.
 
 CI has no GPU, and gpupro's GPU paths differ from its CPU paths: Pallas kernels compiled instead of
 interpreted (the rasterizer's tile kernel, the light kernels), unrolled binary searches, other batch
-sizes. Each picks its path from ``jax.default_backend()`` when it is traced, so this script makes that
-answer "gpu" and lowers each frame with ``lowering_platforms=("cuda",)``: the GPU branches are traced and
-every Pallas kernel is lowered to Triton IR (Triton's own compilation to PTX happens on a GPU only).
+sizes. Most pick their path from ``jax.default_backend()`` when they are traced, so this script makes that
+answer "gpu"; the others (``gpupro.sort.search_sorted``) pick it per platform when lowered, so it lowers
+each frame with ``lowering_platforms=("cuda",)``. The GPU branches are traced and every Pallas kernel is
+lowered to Triton IR (Triton's own compilation to PTX happens on a GPU only).
 
 It runs in a process of its own (tests/test_gpu_lowering.py starts one): the patched backend would
 leave GPU traces in JAX's caches for the CPU tests that follow.
