@@ -94,12 +94,13 @@ def bench_gpupro(clip: np.ndarray, width: int, height: int, repeats: int, tile: 
     faces = np.arange(clip.shape[0], dtype=np.int32).reshape(-1, 3)
     fn = jax.jit(lambda c, f: rasterize(c, f, resolution=(height, width), samples=samples, tile=tile,
                                         tile_capacity=tile_capacity, resolve=resolve))
-    timing = time_function(fn, jnp.asarray(clip), jnp.asarray(faces), repeats=repeats, warmup=3)
+    args = (jnp.asarray(clip), jnp.asarray(faces))
+    timing = time_function(fn, *args, repeats=repeats, warmup=3)
     frags = timing.pop("result")
     timing["counters"] = {k: int(v) for k, v in frags.counters.items()}
     timing["peak_memory"] = peak_memory_bytes()
     if profile:
-        timing["kernels"] = kernel_times(fn, jnp.asarray(clip), jnp.asarray(faces), calls=repeats)
+        timing["kernels"] = kernel_times(fn, *args, calls=repeats)
         print(format_kernel_table(timing["kernels"], top=profile), flush=True)
     return timing, np.asarray(frags.triangle_id)
 

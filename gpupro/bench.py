@@ -80,7 +80,7 @@ def kernel_times(fn: Callable[..., Any], *args, calls: int = 20, warmup: int = 3
         (trace,) = glob.glob(os.path.join(folder, "**", "*.xplane.pb"), recursive=True)
         profile = jax.profiler.ProfileData.from_file(trace)
     on_gpu = jax.default_backend() == "gpu"
-    total, count, module_of = collections.Counter(), collections.Counter(), {}
+    total, count = collections.Counter(), collections.Counter()  # keyed by (kernel, module): names repeat across modules
     for plane in profile.planes:
         if not plane.name.startswith("/device:GPU" if on_gpu else "/host:CPU"):
             continue
@@ -88,11 +88,10 @@ def kernel_times(fn: Callable[..., Any], *args, calls: int = 20, warmup: int = 3
             if on_gpu and "stream" not in line.name.lower():
                 continue
             for name, module, nanoseconds in _line_kernels(line, self_time=not on_gpu):
-                total[name] += nanoseconds
-                count[name] += 1
-                module_of[name] = module
-    rows = [{"kernel": name, "module": module_of[name], "per_call": count[name] / calls, "us": ns / calls / 1e3}
-            for name, ns in total.most_common()]
+                total[name, module] += nanoseconds
+                count[name, module] += 1
+    rows = [{"kernel": name, "module": module, "per_call": count[name, module] / calls, "us": ns / calls / 1e3}
+            for (name, module), ns in total.most_common()]
     return {"calls": calls, "busy_us": sum(r["us"] for r in rows), "kernels": sum(count.values()) / calls,
             "rows": rows}
 
