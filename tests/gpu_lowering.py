@@ -8,33 +8,73 @@ answer "gpu"; the others (``gpupro.sort.search_sorted``) pick it per platform wh
 each frame with ``lowering_platforms=("cuda",)``. The GPU branches are traced and every Pallas kernel is
 lowered to Triton IR (Triton's own compilation to PTX happens on a GPU only).
 
+``--compile`` goes on to compile each frame for an H100 (``h100_target_config.txtpb`` beside this
+script): XLA's GPU compiler runs, fusion, scheduling and Triton's compilation to PTX and SASS included,
+still without a GPU. It needs JAX's CUDA plugin for the installed JAX version, without the CUDA
+libraries: ``pip install "jax-cuda12-plugin==$V" "jax-cuda12-pjrt==$V"`` with ``V`` the version of
+jax. ``XLA_FLAGS=--xla_dump_to=DIR`` then also writes each executable's kernel sequence
+(``*.thunk_sequence_after_thunk_passes.txt``): which kernels a call launches, in which CUDA graphs. The
+CUB sort has no deviceless tuning data, so XLA compiles its own sort in its place, with more kernels.
+
 It runs in a process of its own (tests/test_gpu_lowering.py starts one): the patched backend would
 leave GPU traces in JAX's caches for the CPU tests that follow.
 
 Prints one line per technique to stderr, then a JSON object {technique: Triton kernel launches in its
-lowered frame, or the error's text} to stdout; exits with status 1 if any failed.
+lowered (or compiled) frame, or the error's text} to stdout; exits with status 1 if any failed.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import pathlib
 import sys
 import traceback
+
+if __name__ == "__main__" and "--compile" in sys.argv:
+    # Without a GPU the CUDA plugin registers (and offers its deviceless compiler) only when the CPU is
+    # the platform asked for and its check of the CUDA libraries is skipped; both are read at import.
+    os.environ.update(JAX_PLATFORMS="cpu", JAX_SKIP_CUDA_CONSTRAINTS_CHECK="1")
 
 import jax
 
 TRITON_CALL = "__gpu$xla.gpu.triton"
 
 
-def lower_for_cuda(fn, *args) -> str:
-    """StableHLO text of ``jax.jit(fn)(*args)`` lowered for CUDA, traced as on a GPU."""
+H100_TARGET = pathlib.Path(__file__).with_name("h100_target_config.txtpb")
+
+
+def lowered_for_cuda(fn, *args) -> jax.stages.Lowered:
+    """``jax.jit(fn)`` at ``args`` (arrays or ``jax.ShapeDtypeStruct``), traced as on a GPU and lowered for
+    CUDA."""
     cpu = jax.default_backend
     jax.default_backend = lambda: "gpu"
     try:
-        return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+        return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",))
     finally:
         jax.default_backend = cpu
+
+
+def h100_device() -> jax.Device:
+    """A compile-only device of an H100's description, from JAX's CUDA plugin, with no GPU present."""
+    from jax.experimental import topologies
+
+    try:
+        topology = topologies.get_topology_desc("h100", "cuda", target_config=H100_TARGET.read_text(),
+                                                topology="1x1x1")
+    except NotImplementedError as error:
+        raise RuntimeError(f"--compile needs JAX's CUDA plugin: pip install \"jax-cuda12-plugin=={jax.__version__}\" "
+                           f"\"jax-cuda12-pjrt=={jax.__version__}\" ({error})") from error
+    return topology.devices[0]
+
+
+def compiled_for_h100(fn, *args) -> jax.stages.Compiled:
+    """``jax.jit(fn)(*args)`` traced as on a GPU and compiled for :func:`h100_device`."""
+    on_h100 = jax.sharding.SingleDeviceSharding(h100_device())
+    specs = jax.tree.map(lambda x: jax.ShapeDtypeStruct(jax.numpy.shape(x), jax.numpy.result_type(x),
+                                                        sharding=on_h100), args)
+    return lowered_for_cuda(fn, *specs).compile()
 
 
 GRADIENTS = ("deferred", "clustered_deferred")
@@ -67,10 +107,12 @@ def technique_frame(technique_id: str):
 
 
 def main(args: list[str]) -> int:
-    """``args``: technique ids (default: every registered one), or ``--shard i/n``: every n-th of them
-    from the i-th."""
+    """``args``: optionally ``--compile`` first, then technique ids (default: every registered one), or
+    ``--shard i/n``: every n-th of them from the i-th."""
     from gpupro.technique import registered
 
+    compile_ = args[:1] == ["--compile"]
+    args = args[1:] if compile_ else args
     ids = sorted(registered())
     if args[:1] == ["--shard"]:
         index, count = (int(x) for x in args[1].split("/"))
@@ -81,8 +123,13 @@ def main(args: list[str]) -> int:
     for technique_id in ids:
         try:
             frame, frame_args = technique_frame(technique_id)
-            results[technique_id] = lower_for_cuda(frame, *frame_args).count(TRITON_CALL)
-            print(f"{technique_id}: {results[technique_id]} Triton kernel launches", file=sys.stderr)
+            if compile_:
+                text = compiled_for_h100(frame, *frame_args).as_text()
+            else:
+                text = lowered_for_cuda(frame, *frame_args).as_text()
+            results[technique_id] = text.count(TRITON_CALL)
+            print(f"{technique_id}: {results[technique_id]} Triton kernel launches"
+                  + (", compiled for an H100" if compile_ else ""), file=sys.stderr)
         except Exception:  # noqa: BLE001 - every technique is tried; the failures are the report
             results[technique_id] = traceback.format_exc(limit=-6)
             print(f"{technique_id}: FAILED\n{results[technique_id]}", file=sys.stderr)

@@ -3,6 +3,7 @@
 Triton cannot lower, a branch taken only on GPUs that does not trace. Each shard runs in a process of
 its own."""
 
+import importlib.util
 import json
 import pathlib
 import subprocess
@@ -29,3 +30,20 @@ def test_every_technique_lowers_for_cuda_down_its_gpu_paths(shard):
     # The GPU paths were taken: the tile kernel and the light kernel are compiled, not interpreted.
     for technique_id in {"raster", "deferred", "shadow_maps"} & set(results):
         assert results[technique_id] > 0, technique_id
+
+
+def cuda_plugin_installed() -> bool:
+    try:
+        return importlib.util.find_spec("jax_plugins.xla_cuda12") is not None
+    except ModuleNotFoundError:  # no jax_plugins package at all
+        return False
+
+
+@pytest.mark.skipif(not cuda_plugin_installed(), reason="JAX's CUDA plugin is not installed (tests/gpu_lowering.py says which)")
+def test_the_kernels_compile_for_an_h100_without_a_gpu():
+    run = subprocess.run([sys.executable, str(SCRIPT), "--compile", "raster", "deferred"], capture_output=True,
+                         text=True, timeout=900)
+    assert run.stdout, run.stderr[-4000:]
+    results = json.loads(run.stdout.splitlines()[-1])
+    assert all(isinstance(r, int) and r > 0 for r in results.values()), results
+    assert run.returncode == 0
