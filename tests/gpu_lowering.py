@@ -45,13 +45,20 @@ TRITON_CALL = "__gpu$xla.gpu.triton"
 H100_TARGET = pathlib.Path(__file__).with_name("h100_target_config.txtpb")
 
 
+H100 = jax.sharding.AbstractMesh((), (), abstract_device=jax.sharding.AbstractDevice(
+    device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu"))
+"""A mesh of no axes on an abstract H100: from JAX 0.11 Pallas' Triton lowering asks the device it lowers
+for (its compute capability), and finds it here when no GPU is present."""
+
+
 def lowered_for_cuda(fn, *args) -> jax.stages.Lowered:
     """``jax.jit(fn)`` at ``args`` (arrays or ``jax.ShapeDtypeStruct``), traced as on a GPU and lowered for
-    CUDA."""
+    CUDA (an H100's)."""
     cpu = jax.default_backend
     jax.default_backend = lambda: "gpu"
     try:
-        return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",))
+        with jax.sharding.use_abstract_mesh(H100):
+            return jax.jit(fn).trace(*args).lower(lowering_platforms=("cuda",))
     finally:
         jax.default_backend = cpu
 
