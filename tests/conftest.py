@@ -3,8 +3,11 @@
 Every XLA compilation maps a few memory regions for its code, and a test process keeps every compiled
 executable in JAX's caches. A worker that compiles for the whole suite crosses Linux's per-process limit
 of 65,530 mappings (``vm.max_map_count``), and the next compilation then dies with a segmentation fault
-rather than an error. After each test module the caches are cleared once the process holds more than
-MAX_MAPPINGS regions, which frees those mappings; later modules recompile what they share (few do).
+rather than an error. After every CHECK_EVERY tests the caches are cleared once the process holds more
+than MAX_MAPPINGS regions, which frees those mappings; later tests recompile what they share (few do).
+The count is taken every few tests, not after each, because reading ``/proc/self/maps`` costs about
+50 ms at 20,000 regions; nor only at module ends, as it once was: `-m slow` runs 118 cases of
+tests/test_techniques.py in a row, and a worker crossed the limit inside that one module.
 """
 
 from __future__ import annotations
@@ -16,8 +19,11 @@ import jax
 import pytest
 
 MAX_MAPPINGS = 20_000
-"""Mappings above which the JAX caches are cleared after a module: about a third of the kernel's
-default limit, reached after a few minutes of compiling tests."""
+"""Mappings above which the JAX caches are cleared: about a third of the kernel's default limit, reached
+after a few minutes of compiling tests."""
+
+CHECK_EVERY = 8
+"""Tests between two counts of the mappings (a test adds hundreds of regions, never tens of thousands)."""
 
 _MAPS = pathlib.Path("/proc/self/maps")
 
@@ -31,9 +37,16 @@ def mappings() -> int:
         return 0
 
 
-@pytest.fixture(scope="module", autouse=True)
+_tests_since_count = 0
+
+
+@pytest.fixture(autouse=True)
 def _release_compiled_code():
     yield
-    if mappings() > MAX_MAPPINGS:
-        jax.clear_caches()
-        gc.collect()
+    global _tests_since_count
+    _tests_since_count += 1
+    if _tests_since_count >= CHECK_EVERY:
+        _tests_since_count = 0
+        if mappings() > MAX_MAPPINGS:
+            jax.clear_caches()
+            gc.collect()
