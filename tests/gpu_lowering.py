@@ -26,6 +26,7 @@ lowered (or compiled) frame, or the error's text} to stdout; exits with status 1
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import pathlib
@@ -63,8 +64,10 @@ def lowered_for_cuda(fn, *args) -> jax.stages.Lowered:
         jax.default_backend = cpu
 
 
+@functools.cache
 def h100_device() -> jax.Device:
-    """A compile-only device of an H100's description, from JAX's CUDA plugin, with no GPU present."""
+    """A compile-only device of an H100's description, from JAX's CUDA plugin, with no GPU present (made
+    once, for every technique compiled)."""
     from jax.experimental import topologies
 
     try:

@@ -17,12 +17,16 @@ SHARDS = 3
 SCRIPT = pathlib.Path(__file__).with_name("gpu_lowering.py")
 
 
+def run_script(*args: str) -> tuple[subprocess.CompletedProcess, dict]:
+    """Runs tests/gpu_lowering.py with ``args`` in a process of its own: the process and its JSON report."""
+    run = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=900)
+    assert run.stdout, run.stderr[-4000:]
+    return run, json.loads(run.stdout.splitlines()[-1])
+
+
 @pytest.mark.parametrize("shard", range(SHARDS))
 def test_every_technique_lowers_for_cuda_down_its_gpu_paths(shard):
-    run = subprocess.run([sys.executable, str(SCRIPT), "--shard", f"{shard}/{SHARDS}"], capture_output=True,
-                         text=True, timeout=900)
-    assert run.stdout, run.stderr[-4000:]
-    results = json.loads(run.stdout.splitlines()[-1])
+    run, results = run_script("--shard", f"{shard}/{SHARDS}")
     assert sorted(results) == sorted(registered())[shard::SHARDS]
     failed = {t: r for t, r in results.items() if isinstance(r, str)}
     assert not failed, "\n".join(f"{t}:\n{r}" for t, r in failed.items())
@@ -41,9 +45,6 @@ def cuda_plugin_installed() -> bool:
 
 @pytest.mark.skipif(not cuda_plugin_installed(), reason="JAX's CUDA plugin is not installed (tests/gpu_lowering.py says which)")
 def test_the_kernels_compile_for_an_h100_without_a_gpu():
-    run = subprocess.run([sys.executable, str(SCRIPT), "--compile", "raster", "deferred"], capture_output=True,
-                         text=True, timeout=900)
-    assert run.stdout, run.stderr[-4000:]
-    results = json.loads(run.stdout.splitlines()[-1])
+    run, results = run_script("--compile", "raster", "deferred")
     assert all(isinstance(r, int) and r > 0 for r in results.values()), results
     assert run.returncode == 0
