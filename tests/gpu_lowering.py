@@ -30,6 +30,7 @@ import functools
 import json
 import os
 import pathlib
+import re
 import sys
 import traceback
 
@@ -46,10 +47,19 @@ TRITON_CALL = "__gpu$xla.gpu.triton"
 H100_TARGET = pathlib.Path(__file__).with_name("h100_target_config.txtpb")
 
 
+def _target_field(name: str) -> str:
+    """One field's value in :data:`H100_TARGET` (the text format's ``name: value``, quotes removed)."""
+    match = re.search(rf"^\s*{name}:\s*\"?([^\"\n]*)\"?\s*$", H100_TARGET.read_text(), re.MULTILINE)
+    if match is None:
+        raise RuntimeError(f"{H100_TARGET.name} has no {name}")
+    return match.group(1)
+
+
 H100 = jax.sharding.AbstractMesh((), (), abstract_device=jax.sharding.AbstractDevice(
-    device_kind="NVIDIA H100 80GB HBM3", num_cores=132, platform="gpu"))
-"""A mesh of no axes on an abstract H100: from JAX 0.11 Pallas' Triton lowering asks the device it lowers
-for (its compute capability), and finds it here when no GPU is present."""
+    device_kind=_target_field("device_description_str"), num_cores=int(_target_field("core_count")), platform="gpu"))
+"""A mesh of no axes on an abstract H100 (its name and SM count from :data:`H100_TARGET`): from JAX 0.11
+Pallas' Triton lowering asks the device it lowers for (its compute capability), and finds it here when no
+GPU is present."""
 
 
 def lowered_for_cuda(fn, *args) -> jax.stages.Lowered:
