@@ -13,28 +13,10 @@ tests/test_techniques.py in a row, and a worker crossed the limit inside that on
 from __future__ import annotations
 
 import gc
-import importlib.util
-import os
 import pathlib
 
-
-def _compile_faster_on_cpus() -> None:
-    """Lowers XLA's backend (LLVM) optimisation level from 2 to 0 where no CUDA plugin is installed:
-    compiling is most of the suite's time on the 2-core CPU, and a sample of 78 compile-bound tests took
-    100 s instead of 130. XLA's semantics do not depend on the level, and the exactness the suite checks
-    (integer edge functions, exact depth products) is built not to depend on the compiler; GPUs, and
-    anyone who sets the flag, keep theirs. Set before JAX reads ``XLA_FLAGS`` (at its first backend),
-    so test subprocesses inherit it too."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    has_cuda = any(importlib.util.find_spec(f"jax_cuda{v}_plugin") for v in (12, 13))
-    if "xla_backend_optimization_level" not in flags and not has_cuda:
-        os.environ["XLA_FLAGS"] = f"{flags} --xla_backend_optimization_level=0".strip()
-
-
-_compile_faster_on_cpus()
-
-import jax  # noqa: E402  (after XLA_FLAGS is set)
-import pytest  # noqa: E402
+import jax
+import pytest
 
 MAX_MAPPINGS = 20_000
 """Mappings above which the JAX caches are cleared: about a third of the kernel's default limit, reached
