@@ -25,9 +25,10 @@ def test_time_function_fields():
 
 
 def test_kernel_times_count_each_kernel_by_its_own_time():
-    """A loop of 7 steps: its body's fusion has a row of 7 launches a call, and the loop's own row leaves
-    that time out (self time, on CPUs; on GPUs the loop is no kernel at all). The trip count is an
-    argument, so that no compiler unrolls the loop."""
+    """A loop of 7 steps: its body's fusion has a row of 7 launches a call. On CPUs the loop's own row
+    leaves that time out (self time); on GPUs its row, if any, is its condition's copy to the host, once
+    a step and once to stop (JAX 0.11's traces name it after the loop). The trip count is an argument,
+    so that no compiler unrolls the loop."""
     step = lambda i, y: jnp.sin(y) * 1.5 + y * i
     fn = jax.jit(lambda x, steps: jax.lax.fori_loop(0, steps, step, x).sum())
     times = kernel_times(fn, jnp.ones(1 << 16), jnp.int32(7), calls=3)
@@ -37,7 +38,10 @@ def test_kernel_times_count_each_kernel_by_its_own_time():
     assert abs(times["busy_us"] - sum(r["us"] for r in rows)) < 1e-6
     body = max((r for r in rows if r["per_call"] == 7), key=lambda r: r["us"])
     loops = [r for r in rows if r["kernel"].startswith("while")]
-    assert all(loop["per_call"] == 1 and loop["us"] < body["us"] for loop in loops)
+    if jax.default_backend() == "gpu":
+        assert all(loop["per_call"] == 8 for loop in loops)
+    else:
+        assert all(loop["per_call"] == 1 and loop["us"] < body["us"] for loop in loops)
     table = format_kernel_table(times, top=2)
     assert table.splitlines()[0].startswith(f"{times['busy_us']:.1f} us of kernels a call") and body["kernel"] in table
 

@@ -16,6 +16,8 @@ def printed(lines, prefix):
     return line[len(prefix):].strip()
 
 
+@pytest.mark.slow  # about 50 s on the 2-core CPU; each claim it prints is also a default test (tests/test_raster.py,
+# tests/test_passes.py, tests/test_deferred.py), and the GPU suite runs it
 def test_notebook_example_runs_and_its_claims_hold(capsys):
     namespace = runpy.run_path(str(EXPERIMENTS / "notebook_example.py"), run_name="__main__")
     lines = capsys.readouterr().out.splitlines()

@@ -92,6 +92,8 @@ def test_fine_pruning_evaluates_fewer_lights_than_tiled_deferred():
     assert int(pruned["lights_pruned"]) > 0
 
 
+@pytest.mark.slow  # 25 s on the 2-core CPU: the growth loop is shared (tests/test_technique_contract.py;
+# tests/test_techniques.py grows tiled_culling's and clustered_deferred's by default)
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("fptl", LIGHTS["hundred"], tile=16)
 

@@ -50,6 +50,7 @@ def grid(n, jitter, rng, z=0.0):
     return positions, faces
 
 
+@pytest.mark.slow  # 21 s on the 2-core CPU; tests/test_raster_exact.py checks watertightness on harder jittered grids
 def test_quad_grid_in_ndc_covers_every_pixel_exactly_once():
     rng = np.random.default_rng(1)
     positions, faces = grid(12, 0.08, rng)

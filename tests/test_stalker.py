@@ -93,6 +93,8 @@ def test_ten_thousand_lights_equal_brute_force():
     assert int(counters["light_list_overflow"]) == 0 and int(counters["surviving_lights"]) < lights.count
 
 
+@pytest.mark.slow  # 25 s on the 2-core CPU: the growth loop is shared (tests/test_technique_contract.py;
+# tests/test_techniques.py grows tiled_culling's and clustered_deferred's by default)
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("stalker", LIGHTS["hundred"], option="light_capacity", small=4)
 

@@ -65,19 +65,23 @@ their capacities and gradients are the wrapped pass's, so those cases run with `
 
 
 EAGER_SLOW = {"light_linked_list", "tiled_culling", "tiled_culling_forward", "tiled_forward", "clustered_deferred",
-              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer", "tiled_deferred", "edge_aa"}
+              "clustered_forward", "fptl", "stalker", "shadow_maps", "raster", "gbuffer", "tiled_deferred", "edge_aa",
+              "deferred"}
 """Passes whose op-by-op run compiles every primitive of long per-tile, per-cluster or per-light scan
 bodies one by one (35–90 s each on the 2-core CPU), and the rasterizer's passes (10 s each; the
 rasterizer's own tests compare jit and eager): their jit-against-eager case runs with ``-m slow`` only.
-``deferred`` keeps the shared light loop's eager run in the default suite (``tiled_deferred``'s, 18 s,
-runs the same loop). ``edge_aa``'s own tests compare jit and eager on synthetic G-buffers (here the case
+The shared light loop's eager run is in the default suite as tests/test_deferred.py's jit-against-eager
+check, so ``deferred``'s case here (10 s) is slow too. ``edge_aa``'s own tests compare jit and eager on synthetic G-buffers (here the case
 compiles the passes producing its inputs, 25 s)."""
 
 
-GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred", "edge_aa"}
+GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred", "edge_aa",
+                 "deferred"}
 """Culling passes whose gradients flow through the shared light loop only (culling is discontinuous in
-the lights), as those of ``deferred`` do in the default suite: their gradient cases (17–30 s each on
-the 2-core CPU) run with ``-m slow``; and ``edge_aa``, whose own tests check its parameters' gradients
+the lights), and ``deferred``, the loop itself, whose gradients in the lights and the materials
+tests/test_deferred.py checks against finite differences in the default suite (and tests/test_passes.py
+through the whole default pipeline): their gradient cases (17–30 s each on the 2-core CPU) run with
+``-m slow``; and ``edge_aa``, whose own tests check its parameters' gradients
 on synthetic G-buffers (here the case differentiates through the passes producing its inputs, 28 s)."""
 
 
@@ -240,10 +244,11 @@ def test_jitted_and_unjitted_passes_agree_and_report_their_counters(technique_id
 
 WITH_REFERENCE = [(t.id, scene) for t in TECHNIQUES.values() if t.reference for scene in SCENES]
 REFERENCE_SLOW = {(t, scene) for t, scene in WITH_REFERENCE
-                  if (TECHNIQUES[t].family == "lights" and scene == "sphere") or t in TRANSLUCENT}
-"""The many-light techniques' sphere-scene case (7–11 s each on the 2-core CPU) runs with ``-m slow``: their
-cornell cases run by default, and each technique's own tests compare it with brute force on a scene with
-empty pixels and spot lights."""
+                  if TECHNIQUES[t].family == "lights" or t in TRANSLUCENT or (t, scene) == ("raster", "sphere")}
+"""The many-light techniques' cases (6–13 s each on the 2-core CPU) run with ``-m slow``: each technique's
+own tests compare it with brute force by default, on a scene with empty pixels and spot lights
+(``forward`` against ``deferred``: tests/test_passes.py). So does the rasterizer's sphere case: its
+cornell case and tests/test_raster.py's comparisons with the reference run by default."""
 
 
 @pytest.mark.parametrize("technique_id, scene", _cases(WITH_REFERENCE, slow=REFERENCE_SLOW), ids=[f"{t}-{s}" for t, s in WITH_REFERENCE])
@@ -265,10 +270,11 @@ CAPACITY_SCENE_OPTIONS = {("clustered_deferred", "page_capacity"): {"page_size":
 """Options that make a capacity fill up on the small test scenes (the Cornell box's keys fit in one
 4096-key page; 256-key pages and 54 normal bins per tile spread them over several)."""
 OWN_CAPACITY_TESTS = {"fptl", "tiled_deferred", "light_linked_list", "stalker"}
-"""Techniques whose own test files grow their first capacity against brute force in the default run
+"""Techniques whose own test files grow their first capacity against brute force
 (``test_forced_small_capacity_is_grown_by_render`` in tests/test_fptl.py, tests/test_tiled_shading.py and
-tests/test_stalker.py; tests/test_light_linked_list.py's ten thousand lights): their generic case (15–24 s
-each) runs with ``-m slow``."""
+tests/test_stalker.py, with ``-m slow``; tests/test_light_linked_list.py's ten thousand lights, by
+default): their generic case (15–24 s each) runs with ``-m slow``. The growth loop they go through is
+the one the default cases of ``tiled_culling`` and ``clustered_deferred`` grow."""
 
 
 @pytest.mark.parametrize("technique_id, capacity", _cases(CAPACITIES, slow=TWINS | FURTHER_CAPACITIES | OWN_CAPACITY_TESTS | TRANSLUCENT), ids=[f"{t}.{c.option}" for t, c in CAPACITIES])

@@ -54,6 +54,8 @@ def test_small_lights_cost_fewer_lighting_computations_with_depth_bounds():
     assert float(with_depth["false_positive_rate"]) < float(without["false_positive_rate"])
 
 
+@pytest.mark.slow  # 25 s on the 2-core CPU: the growth loop is shared (tests/test_technique_contract.py;
+# tests/test_techniques.py grows tiled_culling's and clustered_deferred's by default)
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("tiled_deferred", LIGHTS["hundred"], tile=16)
 
