@@ -326,8 +326,10 @@ def rasterize_tiled(
         marks = marks.at[jnp.where(starts_here, jnp.maximum(local_slot, 0), pair_capacity)].max(
             jnp.arange(num_faces, dtype=jnp.int32), mode="drop"
         )
-        # A triangle whose pairs began in an earlier pass owns the first slots of this one.
-        carried = jnp.searchsorted(pair_end, base, side="right", method="scan_unrolled").astype(jnp.int32)
+        # A triangle whose pairs began in an earlier pass owns the first slots of this one: the first
+        # triangle whose pairs end past ``base`` (``pair_end`` ascends), counted by one parallel reduction
+        # rather than a binary search, whose steps are a chain of single-thread kernels on a GPU.
+        carried = jnp.sum(pair_end <= base, dtype=jnp.int32)
         owner = jnp.maximum(jax.lax.cummax(marks), carried)
         owner = jnp.minimum(owner, max(num_faces - 1, 0))
         local = k - pair_start[owner]
