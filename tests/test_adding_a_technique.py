@@ -82,6 +82,8 @@ def test_reference_page_lists_every_option_and_parameter():
     generic.test_reference_page_lists_every_option_and_parameter(ID)
 
 
+@pytest.mark.slow  # 27 s on the 2-core CPU; tests/test_techniques.py makes the same central-difference check of
+# registered techniques' declared parameters by default (post's and forward's)
 def test_declared_parameters_have_correct_gradients():
     # generic.test_declared_parameters_have_correct_gradients, for both parameters in one check_grads call.
     names = [p.name for p in TECHNIQUES[ID].params if not p.discontinuous]
