@@ -1,6 +1,7 @@
 """The Cornell-box scene, G-buffer and light sets shared by the many-light technique tests (tiled, FPTL)."""
 
 import numpy as np
+import pytest
 
 import gpupro as gp
 from gpupro.pipeline.capacity import render_without_overflow
@@ -52,6 +53,12 @@ def mixed_lights(seed=0):
 
 def assert_same(fast, slow):
     np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-4 * max(float(np.abs(slow).max()), 1e-6))
+
+
+GROWTH_TEST_IS_SLOW = pytest.mark.slow
+"""The mark of a technique's own growth test (:func:`assert_capacity_grown_to_brute_force`, about 25 s on
+the 2-core CPU each): the growth loop is shared, tests/test_technique_contract.py grows a toy technique's
+capacity and tests/test_techniques.py those of ``tiled_culling`` and ``clustered_deferred`` by default."""
 
 
 def assert_capacity_grown_to_brute_force(technique_id, lights, *, option="tile_capacity", small=2, **options):

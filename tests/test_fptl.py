@@ -12,7 +12,7 @@ from gpupro.shading.light_kernel import tile_list_hits
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, prune_light_lists, shade_fptl
 from gpupro.techniques.lights.tiled import cull_lights, shade_tiled, to_tiles
-from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
+from many_lights_scene import CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 TILE = 16
 
@@ -92,8 +92,7 @@ def test_fine_pruning_evaluates_fewer_lights_than_tiled_deferred():
     assert int(pruned["lights_pruned"]) > 0
 
 
-@pytest.mark.slow  # 25 s on the 2-core CPU: the growth loop is shared (tests/test_technique_contract.py;
-# tests/test_techniques.py grows tiled_culling's and clustered_deferred's by default)
+@GROWTH_TEST_IS_SLOW
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("fptl", LIGHTS["hundred"], tile=16)
 

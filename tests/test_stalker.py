@@ -17,7 +17,7 @@ from gpupro.techniques.lights.stalker import (
 )
 from gpupro.techniques.lights.tiled import screen_bounds
 from many_lights_scene import (
-    CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights,
+    CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights,
     ten_thousand_lights,
 )
 
@@ -93,8 +93,7 @@ def test_ten_thousand_lights_equal_brute_force():
     assert int(counters["light_list_overflow"]) == 0 and int(counters["surviving_lights"]) < lights.count
 
 
-@pytest.mark.slow  # 25 s on the 2-core CPU: the growth loop is shared (tests/test_technique_contract.py;
-# tests/test_techniques.py grows tiled_culling's and clustered_deferred's by default)
+@GROWTH_TEST_IS_SLOW
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("stalker", LIGHTS["hundred"], option="light_capacity", small=4)
 

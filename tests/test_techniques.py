@@ -71,8 +71,8 @@ EAGER_SLOW = {"light_linked_list", "tiled_culling", "tiled_culling_forward", "ti
 bodies one by one (35–90 s each on the 2-core CPU), and the rasterizer's passes (10 s each; the
 rasterizer's own tests compare jit and eager): their jit-against-eager case runs with ``-m slow`` only.
 The shared light loop's eager run is in the default suite as tests/test_deferred.py's jit-against-eager
-check, so ``deferred``'s case here (10 s) is slow too. ``edge_aa``'s own tests compare jit and eager on synthetic G-buffers (here the case
-compiles the passes producing its inputs, 25 s)."""
+check, so ``deferred``'s case here (10 s) is slow too. ``edge_aa``'s own tests compare jit and eager on
+synthetic G-buffers (here the case compiles the passes producing its inputs, 25 s)."""
 
 
 GRADIENT_SLOW = {"light_linked_list", "tiled_culling", "fptl", "stalker", "tiled_deferred", "clustered_deferred", "edge_aa",

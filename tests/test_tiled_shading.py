@@ -10,7 +10,7 @@ from gpupro.shading import light_reaches
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.shading.light_bounds import light_spheres
 from gpupro.techniques.lights.tiled import shade_tiled
-from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
+from many_lights_scene import CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 STATIC = ("distribution", "light_chunk", "tile", "tile_capacity", "depth_bounds")
 
@@ -54,8 +54,7 @@ def test_small_lights_cost_fewer_lighting_computations_with_depth_bounds():
     assert float(with_depth["false_positive_rate"]) < float(without["false_positive_rate"])
 
 
-@pytest.mark.slow  # 25 s on the 2-core CPU: the growth loop is shared (tests/test_technique_contract.py;
-# tests/test_techniques.py grows tiled_culling's and clustered_deferred's by default)
+@GROWTH_TEST_IS_SLOW
 def test_forced_small_capacity_is_grown_by_render():
     assert_capacity_grown_to_brute_force("tiled_deferred", LIGHTS["hundred"], tile=16)
 
