@@ -429,11 +429,12 @@ COUNTERS = TILED_COUNTERS + (
 )
 NOTES = ("Missing from GPU Pro 6 VI.1: the single-kernel tiled deferred that shades from shared memory (here "
          "culling and shading are two steps of one jitted frame; tiled_deferred's kernel = \"single\" is that "
-         "form with Paper I's screen-rectangle test instead of the chapter's planes), the atomics (count → scan → fill gives the "
-         "same lists, in ascending order), transparency and MSAA, and the benchmark timings (see the issue's "
-         "GPU benchmark). Departures: spots are also culled as cones, capsules as capsules; with a depth partition each partition's "
-         "list is also tested against the whole tile; tile corners use the true pixel-to-NDC mapping of the "
-         "screen, not the chapter's 'whole tile' resolution.")
+         "form with Paper I's screen-rectangle test instead of the chapter's planes), the atomics (count → scan → "
+         "fill gives the same lists, in ascending order), transparency and MSAA (the frame graph refuses "
+         "multisampled input with an error naming the passes that take it). Departures: spots are also culled as "
+         "cones, capsules as capsules; with a depth partition each partition's list is also tested against the "
+         "whole tile; tile corners use the true pixel-to-NDC mapping of the screen, not the chapter's 'whole tile' "
+         "resolution.")
 EXAMPLE = {"tile": 8}
 
 register(Technique(
