@@ -137,8 +137,8 @@ def _outside_cone(centre, radius, lights: Lights):
     """bool [M, N]: the sphere (``centre`` [M, 3], ``radius`` [M]) misses each spot's infinite cone or
     lies behind its apex plane (module docstring; True only where that is certain)."""
     offset = centre[:, None, :] - lights.position[None]  # V [M, N, 3]
-    along = jnp.sum(offset * lights.direction[None], axis=-1)  # s
-    across = jnp.sqrt(jnp.maximum(jnp.sum(offset * offset, axis=-1) - along * along, 0.0))  # q
+    along = dot3(offset, lights.direction[None])  # s
+    across = jnp.sqrt(jnp.maximum(dot3(offset, offset) - along * along, 0.0))  # q
     cos_outer = lights.cos_outer[None]
     sin_outer = jnp.sqrt(jnp.maximum(1.0 - cos_outer * cos_outer, 0.0))
     widened = radius[:, None] + SLACK * (radius[:, None] + jnp.abs(along) + across)

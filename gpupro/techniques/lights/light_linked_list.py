@@ -78,7 +78,7 @@ import typing
 import jax
 import jax.numpy as jnp
 
-from gpupro.numerics import einsum
+from gpupro.numerics import dot3, einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.light_bounds import SLACK, transform_lights
@@ -157,9 +157,9 @@ def block_rays(camera: Camera, grid: tuple[int, int], *, scale: int):
 def _ray_ball(origin, direction, centre, radius):
     """[t_0, t_1] (t ≥ 0) of G rays inside N balls: ``(t0, t1)`` [G, N], t0 > t1 where they miss."""
     m = origin[:, None, :] - centre[None]
-    along = jnp.sum(m * direction[:, None, :], axis=-1)
+    along = dot3(m, direction[:, None, :])
     perpendicular = m - along[..., None] * direction[:, None, :]
-    disc = radius * radius - jnp.sum(perpendicular * perpendicular, axis=-1)  # stable for distant balls
+    disc = radius * radius - dot3(perpendicular, perpendicular)  # stable for distant balls
     root = jnp.sqrt(jnp.maximum(disc, 0.0))
     t1 = jnp.where(disc >= 0.0, -along + root, -jnp.inf)
     return jnp.maximum(-along - root, 0.0), t1

@@ -101,7 +101,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.ndimage import map_coordinates
 
-from gpupro.numerics import einsum
+from gpupro.numerics import dot3, einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
 from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_phong
@@ -317,8 +317,8 @@ def lut_radiance(points, normals, views, material: dict, lights: Lights, visibil
     E⊥_i · s_i · [(1 − m) c · T_d + f0 · T_s] with T_d, T_s looked up in ``lut`` (module docstring)."""
     to_light, irradiance = incident_light(lights, points)
     half = views + to_light
-    half = half / jnp.sqrt(jnp.maximum(jnp.sum(half * half, axis=-1, keepdims=True), 1e-12))
-    diffuse, specular = lookup_material(lut, jnp.sum(normals * to_light, axis=-1), jnp.sum(normals * half, axis=-1),
+    half = half / jnp.sqrt(jnp.maximum(dot3(half, half, keepdims=True), 1e-12))
+    diffuse, specular = lookup_material(lut, dot3(normals, to_light), dot3(normals, half),
                                         material["roughness"], min_roughness=min_roughness)
     metallic = material["metallic"][..., None]
     f0 = DIELECTRIC_F0 * (1.0 - metallic) + material["base_color"] * metallic
@@ -335,7 +335,7 @@ def faces_light(lights: Lights, points, normals):
     nearest segment point; −direction for a directional light)."""
     towards = jnp.where((lights.kind == DIRECTIONAL)[None, :, None], -lights.direction[None],
                         representative_points(lights, points) - points[:, None, :])
-    return jnp.sum(normals[:, None, :] * towards, axis=-1) > 0.0
+    return dot3(normals[:, None, :], towards) > 0.0
 
 
 def shade_masked(surface: dict, light_list, lights: Lights, camera: Camera, *, shadow=None, distribution: str,

@@ -83,7 +83,7 @@ import typing
 import jax
 import jax.numpy as jnp
 
-from gpupro.numerics import einsum
+from gpupro.numerics import dot3, einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import (
@@ -242,7 +242,7 @@ def box_hits(lower, upper, centre, radius):
     """Spheres against axis-aligned boxes (Arvo's distance test): bool [M, N] for boxes ``lower``,
     ``upper`` [M, 3] and spheres ``centre`` [N, 3], ``radius`` [N] (same space and units)."""
     nearest = jnp.clip(centre[None], lower[:, None], upper[:, None])
-    gap = jnp.linalg.norm(nearest - centre[None], axis=-1)
+    gap = jnp.sqrt(dot3(nearest - centre[None], nearest - centre[None]))
     return gap < _widened(radius, gap)
 
 
