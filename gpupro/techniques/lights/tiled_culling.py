@@ -241,8 +241,8 @@ def plane_hits(normal, offset, depth_ranges, centre, radius):
 def box_hits(lower, upper, centre, radius):
     """Spheres against axis-aligned boxes (Arvo's distance test): bool [M, N] for boxes ``lower``,
     ``upper`` [M, 3] and spheres ``centre`` [N, 3], ``radius`` [N] (same space and units)."""
-    nearest = jnp.clip(centre[None], lower[:, None], upper[:, None])
-    gap = jnp.sqrt(dot3(nearest - centre[None], nearest - centre[None]))
+    offset = jnp.clip(centre[None], lower[:, None], upper[:, None]) - centre[None]  # to the nearest box point
+    gap = jnp.sqrt(dot3(offset, offset))
     return gap < _widened(radius, gap)
 
 
