@@ -48,6 +48,11 @@ def _value(v) -> str:
     return "none" if v is None else f"`{v!r}`"
 
 
+def _when_value(v) -> str:
+    """A capacity's ``when`` value: one option value, or a tuple of them, any of which uses it."""
+    return " or ".join(_value(one) for one in v) if isinstance(v, tuple) else _value(v)
+
+
 def _range(p) -> str:
     lo = "−∞" if p.lower == -math.inf else f"{p.lower:g}"
     hi = "∞" if p.upper == math.inf else f"{p.upper:g}"
@@ -83,7 +88,7 @@ def reference_page(technique: str | Technique) -> str:
     if t.capacities:
         parts += ["", "## Capacities", "", _table(("option", "overflow counter", "on overflow", "doc"),
                   [(f"`{c.option}`", f"`{c.counter}`", "grown and rendered again" if c.lossy else "more steps, nothing lost",
-                    c.doc + "".join(f"; used when {k} = {_value(v)}" for k, v in c.when)) for c in t.capacities])]
+                    c.doc + "".join(f"; used when {k} = {_when_value(v)}" for k, v in c.when)) for c in t.capacities])]
     if t.counters:
         parts += ["", "## Counters", "", _table(("counter", "doc"), [(f"`{c.name}`", c.doc) for c in t.counters])]
     doc = inspect.getdoc(importlib.import_module(t.module))

@@ -157,7 +157,8 @@ class Capacity(typing.NamedTuple):
     not lossy only bounds the work per step (the excess takes further steps and nothing is lost): its
     counter reports that work. ``small``: a value small enough to overflow on the test scenes. ``when``:
     (option, value) pairs under which the capacity is used at all (e.g. one assignment method of several);
-    the generic tests set them when they force the capacity small.
+    a value may be a tuple of values, any of which uses it (e.g. a method and the "auto" that may pick
+    it). The generic tests set them (a tuple's first value) when they force the capacity small.
     """
 
     option: str
@@ -170,7 +171,16 @@ class Capacity(typing.NamedTuple):
 
     def used(self, options: typing.Mapping) -> bool:
         """Whether the pass ``options`` use this capacity (every ``when`` pair holds)."""
-        return all(options.get(name) == value for name, value in self.when)
+        return all(options.get(name) in _one_of(value) for name, value in self.when)
+
+    def using_options(self) -> dict:
+        """Options under which this capacity is used: each ``when`` option at its (first) value."""
+        return {name: _one_of(value)[0] for name, value in self.when}
+
+
+def _one_of(value) -> tuple:
+    """A ``when`` value as the tuple of option values it accepts."""
+    return value if isinstance(value, tuple) else (value,)
 
 
 class Counter(typing.NamedTuple):

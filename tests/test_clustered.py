@@ -263,3 +263,24 @@ def test_backface_culled_lights_face_away_from_every_sample_of_their_cluster(var
             assert (np.sum(normals[members] * to_light, axis=1) <= 1e-6).all()
             removed_pairs += 1
     assert removed_pairs > 0
+
+
+def test_auto_assignment_that_takes_the_tree_grows_its_overflowing_frontier(monkeypatch):
+    # "auto" takes the tree past BRUTE_FORCE_PAIRS (1080p, thousands of lights); made to take it here, its
+    # frontier overflow must make the entry points grow the frontier as assignment = "tree" does.
+    import gpupro as gp
+    from gpupro.pipeline import pipeline_for
+    from gpupro.pipeline.capacity import render_without_overflow
+    from gpupro.techniques.lights import clustered
+
+    monkeypatch.setattr(clustered, "BRUTE_FORCE_PAIRS", 0)
+    scene = gp.scenes.cornell_box(resolution=(32, 32))
+    lo, hi = scene.bounds()
+    scene = scene.replace(lights=gp.scene.uniform_in_box(jax.random.PRNGKey(3), 24, lo, hi, light_range=2.5))
+    small = pipeline_for("clustered_deferred", example=True, assignment="auto", frontier_capacity=7)
+    frame = small(small.init_params(), scene)
+    assert int(frame["counters"]["clustered_deferred"]["frontier_overflow"]) > 0
+    used, frame = render_without_overflow(small, lambda p: p(p.init_params(), scene))
+    assert used["clustered_deferred"].options["frontier_capacity"] > 7
+    assert int(frame["counters"]["clustered_deferred"]["frontier_overflow"]) == 0
+    assert int(frame["counters"]["clustered_deferred"]["tree_nodes_tested"]) > 0

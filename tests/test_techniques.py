@@ -281,7 +281,7 @@ the one the default cases of ``tiled_culling`` and ``clustered_deferred`` grow."
 def test_capacity_forced_small_reports_overflow_and_loses_nothing(technique_id, capacity):
     t = TECHNIQUES[technique_id]
     scene = SCENES["cornell"]
-    small = _example(technique_id, **dict(capacity.when), **CAPACITY_SCENE_OPTIONS.get((technique_id, capacity.option), {}),
+    small = _example(technique_id, **capacity.using_options(), **CAPACITY_SCENE_OPTIONS.get((technique_id, capacity.option), {}),
                      **{capacity.option: capacity.small})
     expected_pipeline = _example(t.reference or technique_id)
     expected = expected_pipeline(expected_pipeline.init_params(), scene)

@@ -45,7 +45,9 @@ space (camera at the origin looking down −z, view depth d = −z):
        half-length ℓ_i (0 for the other kinds; the representative point q(x) lies within ℓ_i of the
        light's centre, so every l = q(x) − x lies in that cone); δ = 0 for directional lights;
        ω > π/2 + α + δ means n · l < 0 for every sample, whose radiance is then exactly 0.
-   ``assignment = "brute_force"`` tests every (cluster, light) pair; ``"tree"`` finds the same pairs
+   ``assignment = "brute_force"`` tests every (cluster, light) pair, as [C, N] arrays broadcast from
+   the clusters and the lights (no per-pair gathers; the tests are elementwise, so XLA fuses them into
+   one loop); ``"tree"`` finds the same pairs
    through the per-frame light tree of :mod:`gpupro.techniques.lights.light_tree` (Morton-sorted
    lights, B = ``tree_branching`` children per node, level-by-level frontier of ``frontier_capacity``
    pairs), as Paper II does; ``"grid"`` (position-only keys, not in Paper II) bins each light into the
@@ -58,7 +60,7 @@ space (camera at the origin looking down −z, view depth d = −z):
    a sample of a cluster is therefore listed; lights that only meet the AABB of the cluster's
    sub-frustum outside the cell are not, so grid lists can be shorter than brute force's and the image is
    the same. ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots × lights and the
-   tree beyond (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree
+   tree beyond, whose frontier the entry points grow as for ``"tree"`` (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree
    in 5.37 ms; at 1,048,576 lights the grid's 38 M candidates took longer than the tree: docs/benchmarks.md).
    Per-cluster lists (``list_layout``, :mod:`gpupro.shading.light_lists`): count → scan → fill into
    [C, L] (L = min(``cluster_light_capacity``, N)), ascending light indices, the excess dropped and
@@ -90,7 +92,7 @@ import typing
 import jax
 import jax.numpy as jnp
 
-from gpupro.numerics import einsum
+from gpupro.numerics import dot3, einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, Lights
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_boxes, light_spheres, transform_lights
@@ -334,31 +336,53 @@ def light_leaf_boxes(lights_view: Lights):
 
 
 def backfacing(lower, upper, axis, half_angle, lights: Lights):
-    """Whether each light (K pairs: boxes [K, 3], cones [K, 3], [K], lights K) lies behind every normal
-    of its cluster's cone: ω > π/2 + α + δ (module docstring, step 4). bool [K]."""
+    """Whether each light lies behind every normal of its cluster's cone: ω > π/2 + α + δ (module
+    docstring, step 4). Boxes ``lower``, ``upper`` [..., 3], cones ``axis`` [..., 3] and ``half_angle``
+    [...]; the lights' fields broadcast against them (K pairs: [K] each; or clusters [C, 1] against
+    lights [1, N]). bool [...]. Written elementwise (``dot3``, no reductions) so that XLA fuses it into
+    the pair loop."""
     centre = 0.5 * (lower + upper)
-    radius = 0.5 * jnp.linalg.norm(upper - lower, axis=-1)
+    diagonal = upper - lower
+    radius = 0.5 * jnp.sqrt(dot3(diagonal, diagonal))
     directional = lights.kind == DIRECTIONAL
-    towards = jnp.where(directional[:, None], -lights.direction, lights.position - centre)
-    distance = jnp.linalg.norm(towards, axis=-1)
-    cos_omega = jnp.sum(towards * axis, axis=-1) / jnp.maximum(distance, 1e-30)
+    towards = jnp.where(directional[..., None], -lights.direction, lights.position - centre)
+    distance = jnp.sqrt(dot3(towards, towards))
+    cos_omega = dot3(towards, axis) / jnp.maximum(distance, 1e-30)
     omega = jnp.arccos(jnp.clip(cos_omega, -1.0, 1.0))
     radius = radius + lights.length  # a capsule lights from anywhere within its half-length of its centre
     delta = jnp.where(directional, 0.0, jnp.where(distance > radius, jnp.arcsin(jnp.clip(radius / distance, 0.0, 1.0)), jnp.pi))
     return omega > 0.5 * jnp.pi + half_angle + delta + CONE_MARGIN
 
 
+def _leaf_tests(lower, upper, axis, half_angle, valid, lights: Lights, leaf_lower, leaf_upper, meets):
+    """``(meets, culled)`` of step 4's leaf test on broadcastable operands (see :func:`backfacing`):
+    the light's leaf box meets the cluster's box, the true-shape test ``meets`` holds and the slot is
+    valid; split into lights kept and lights back-face culled."""
+    overlap = (lower <= leaf_upper) & (leaf_lower <= upper)
+    meets = overlap[..., 0] & overlap[..., 1] & overlap[..., 2] & meets & valid
+    behind = backfacing(lower, upper, axis, half_angle, lights)
+    return meets & ~behind, meets & behind
+
+
 def pair_tests(clusters: Clusters, lights_view: Lights, leaf_lower, leaf_upper, cluster, light):
     """The leaf test of step 4 for K (cluster, light) index pairs (int32 [K] each): ``(meets, culled)``
     bool [K]: the bounds meet, and the bounds meet but the light is back-facing."""
-    pick = lambda x: x[light]
-    each = jax.tree_util.tree_map(pick, lights_view)
+    each = jax.tree_util.tree_map(lambda x: x[light], lights_view)
     lower, upper = clusters.lower[cluster], clusters.upper[cluster]
-    boxed = jnp.all((lower <= pick(leaf_upper)) & (pick(leaf_lower) <= upper), axis=-1)
     one = lambda lo, up, single: box_meets_light(lo[None], up[None], jax.tree_util.tree_map(lambda x: x[None], single))[0, 0]
-    meets = boxed & jax.vmap(one)(lower, upper, each) & clusters.valid[cluster]
-    behind = backfacing(lower, upper, clusters.axis[cluster], clusters.half_angle[cluster], each)
-    return meets & ~behind, meets & behind
+    meets = jax.vmap(one)(lower, upper, each)
+    return _leaf_tests(lower, upper, clusters.axis[cluster], clusters.half_angle[cluster], clusters.valid[cluster],
+                       each, leaf_lower[light], leaf_upper[light], meets)
+
+
+def all_pair_tests(clusters: Clusters, lights_view: Lights, leaf_lower, leaf_upper):
+    """:func:`pair_tests` of every cluster slot against every light, as [C, N] arrays broadcast from the
+    clusters' [C] and the lights' [N] (no per-pair gathers): brute-force assignment."""
+    row = lambda x: x[:, None]
+    lights_row = jax.tree_util.tree_map(lambda x: x[None], lights_view)
+    meets = box_meets_light(clusters.lower, clusters.upper, lights_view)
+    return _leaf_tests(row(clusters.lower), row(clusters.upper), row(clusters.axis), row(clusters.half_angle),
+                       row(clusters.valid), lights_row, leaf_lower[None], leaf_upper[None], meets)
 
 
 def fill_pair_lists(cluster, light, hit, *, clusters: int, capacity: int, light_ordered: bool = False,
@@ -485,10 +509,8 @@ def assign_lights(lights: Lights, camera: Camera, clusters: Clusters, *, assignm
     if assignment == "auto":
         assignment = "brute_force" if n_clusters * n_lights <= BRUTE_FORCE_PAIRS else "tree"
     if assignment == "brute_force":
-        cluster = jnp.repeat(jnp.arange(n_clusters, dtype=jnp.int32), n_lights)
-        light = jnp.tile(jnp.arange(n_lights, dtype=jnp.int32), n_clusters)
-        hit, culled = tests(cluster, light)
-        lists, counts = fill_lists(hit.reshape(n_clusters, n_lights), capacity=capacity, **layout)
+        hit, culled = all_pair_tests(clusters, lights_view, leaf_lower, leaf_upper)
+        lists, counts = fill_lists(hit, capacity=capacity, **layout)
         stats["cluster_light_tests"] = jnp.sum(clusters.valid, dtype=jnp.int32) * n_lights
     elif assignment == "grid":
         cluster, light, valid, total = grid_candidates(lights, camera, clusters, tile=tile, grid_capacity=grid_capacity)
@@ -654,7 +676,7 @@ CLUSTERED_CAPACITIES = (
     Capacity("cluster_light_capacity", "cluster_list_overflow", "lights listed per cluster; the excess is dropped",
              needed="max_lights_per_cluster"),
     Capacity("frontier_capacity", "frontier_overflow", "(cluster, tree node) pairs per traversal level; the excess "
-             "is dropped with its lights", needed="max_frontier", when=(("assignment", "tree"),)),
+             "is dropped with its lights", needed="max_frontier", when=(("assignment", ("tree", "auto")),)),
     Capacity("grid_capacity", "grid_overflow", "(tile, slice) cells × light candidates of grid assignment; the excess "
              "is dropped", needed="grid_candidates", when=(("assignment", "grid"),)),
     Capacity("page_capacity", "page_overflow", "physical pages of the page table; the samples of keys in the excess "
