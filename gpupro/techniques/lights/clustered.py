@@ -102,7 +102,7 @@ from gpupro.sort import key_runs, search_sorted
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, register
 from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.techniques.lights.forward import forward_of
-from gpupro.techniques.lights.light_tree import build_light_tree, traverse
+from gpupro.techniques.lights.light_tree import boxes_overlap, build_light_tree, traverse
 from gpupro.techniques.lights.tiled import (
     LIST_LAYOUT_OPTIONS, LIST_MEMORY_CAPACITY, LIST_MEMORY_COUNTERS, TILED_COUNTERS, fill_lists, from_tiles,
     list_memory_counters, screen_bounds, tile_grid, to_tiles,
@@ -358,8 +358,7 @@ def _leaf_tests(lower, upper, axis, half_angle, valid, lights: Lights, leaf_lowe
     """``(meets, culled)`` of step 4's leaf test on broadcastable operands (see :func:`backfacing`):
     the light's leaf box meets the cluster's box, the true-shape test ``meets`` holds and the slot is
     valid; split into lights kept and lights back-face culled."""
-    overlap = (lower <= leaf_upper) & (leaf_lower <= upper)
-    meets = overlap[..., 0] & overlap[..., 1] & overlap[..., 2] & meets & valid
+    meets = boxes_overlap(lower, upper, leaf_lower, leaf_upper) & meets & valid
     behind = backfacing(lower, upper, axis, half_angle, lights)
     return meets & ~behind, meets & behind
 
