@@ -265,22 +265,16 @@ def test_backface_culled_lights_face_away_from_every_sample_of_their_cluster(var
     assert removed_pairs > 0
 
 
-def test_auto_assignment_that_takes_the_tree_grows_its_overflowing_frontier(monkeypatch):
-    # "auto" takes the tree past BRUTE_FORCE_PAIRS (1080p, thousands of lights); made to take it here, its
-    # frontier overflow must make the entry points grow the frontier as assignment = "tree" does.
-    import gpupro as gp
+def test_auto_assignment_that_takes_the_tree_grows_its_overflowing_frontier():
+    # "auto" takes the tree past BRUTE_FORCE_PAIRS (1080p, thousands of lights), so the entry points must
+    # grow the frontier under "auto" as under "tree" (the generic capacity test renders the "tree" case).
     from gpupro.pipeline import pipeline_for
-    from gpupro.pipeline.capacity import render_without_overflow
-    from gpupro.techniques.lights import clustered
+    from gpupro.pipeline.capacity import grown, overflows
 
-    monkeypatch.setattr(clustered, "BRUTE_FORCE_PAIRS", 0)
-    scene = gp.scenes.cornell_box(resolution=(32, 32))
-    lo, hi = scene.bounds()
-    scene = scene.replace(lights=gp.scene.uniform_in_box(jax.random.PRNGKey(3), 24, lo, hi, light_range=2.5))
-    small = pipeline_for("clustered_deferred", example=True, assignment="auto", frontier_capacity=7)
-    frame = small(small.init_params(), scene)
-    assert int(frame["counters"]["clustered_deferred"]["frontier_overflow"]) > 0
-    used, frame = render_without_overflow(small, lambda p: p(p.init_params(), scene))
-    assert used["clustered_deferred"].options["frontier_capacity"] > 7
-    assert int(frame["counters"]["clustered_deferred"]["frontier_overflow"]) == 0
-    assert int(frame["counters"]["clustered_deferred"]["tree_nodes_tested"]) > 0
+    for assignment, used in (("auto", True), ("tree", True), ("brute_force", False), ("grid", False)):
+        pipeline = pipeline_for("clustered_deferred", example=True, assignment=assignment)
+        counters = {"clustered_deferred": {"frontier_overflow": 5, "max_frontier": 40_000}}
+        found = overflows(pipeline, counters)
+        assert [capacity.option for _, capacity, _ in found] == (["frontier_capacity"] if used else []), assignment
+        if used:
+            assert grown(pipeline, counters, found)["clustered_deferred"].options["frontier_capacity"] == 40_000
