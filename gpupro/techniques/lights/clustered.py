@@ -60,8 +60,9 @@ space (camera at the origin looking down −z, view depth d = −z):
    a sample of a cluster is therefore listed; lights that only meet the AABB of the cluster's
    sub-frustum outside the cell are not, so grid lists can be shorter than brute force's and the image is
    the same. ``"auto"`` takes brute force up to :data:`BRUTE_FORCE_PAIRS` cluster slots × lights and the
-   tree beyond, whose frontier the entry points grow as for ``"tree"`` (on an H200 brute force assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree
-   in 5.37 ms; at 1,048,576 lights the grid's 38 M candidates took longer than the tree: docs/benchmarks.md).
+   tree beyond, whose frontier the entry points then grow as for ``"tree"`` (on an H200 brute force
+   assigned 2,400 lights to 6,505 cluster slots in 0.87 ms, the tree in 5.37 ms; at 1,048,576 lights the
+   grid's 38 M candidates took longer than the tree: docs/benchmarks.md).
    Per-cluster lists (``list_layout``, :mod:`gpupro.shading.light_lists`): count → scan → fill into
    [C, L] (L = min(``cluster_light_capacity``, N)), ascending light indices, the excess dropped and
    counted (``cluster_list_overflow``; grown to ``max_lights_per_cluster``); or packed (sec. 4.4's
