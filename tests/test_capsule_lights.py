@@ -14,9 +14,10 @@ from gpupro.config import ConfigError, build_scene, load_config
 from gpupro.scene import CAPSULE, POINT, SPOT, check_scene, make_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.shading import (
-    box_meets_light, incident_light, light_boxes, light_reaches, light_spheres,
+    box_meets_light, transform_lights, incident_light, light_boxes, light_reaches, light_spheres,
     segment_box_distance, sphere_meets_light,
 )
+from gpupro.shading.light_loop import pad_lights
 from gpupro.technique import default_params, get, validate_options
 from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, shade_fptl
@@ -84,6 +85,31 @@ def test_capsule_of_length_zero_is_exactly_a_point_light():
                                   np.asarray(reaches_of(as_capsules, POSITIONS)))
     np.testing.assert_array_equal(np.asarray(brute(GBUFFER, MIXED, CAMERA.eye, **OPTIONS)[0]),
                                   np.asarray(brute(GBUFFER, as_capsules, CAMERA.eye, **OPTIONS)[0]))
+
+
+def test_without_capsules_lengths_are_not_read_and_culling_tests_points():
+    # make_lights sets the static flag; concatenating, padding and moving lights keep it
+    assert MIXED.capsules and capsules().capsules and not mixed_lights().capsules
+    assert transform_lights(MIXED, jnp.eye(4)).capsules and not pad_lights(mixed_lights(), count=3).capsules
+    # Arvo's test alone (no capsules) decides as the segment search does at length 0
+    lower = rng.uniform(-1.0, 6.0, (300, 3)).astype(np.float32)
+    upper = lower + rng.uniform(0.0, 1.5, (300, 3)).astype(np.float32)
+    points_only = mixed_lights()
+    searched = dataclasses.replace(points_only, capsules=True)
+    np.testing.assert_array_equal(np.asarray(box_meets_light(lower, upper, points_only)),
+                                  np.asarray(box_meets_light(lower, upper, searched)))
+    # Flagged off, capsules shade and cull as point lights at their centres, in brute force and in a
+    # culling technique alike (so the two still agree)
+    off = dataclasses.replace(MIXED, capsules=False)
+    at_centres = dataclasses.replace(MIXED, length=jnp.zeros_like(MIXED.length))
+    np.testing.assert_array_equal(np.asarray(box_meets_light(lower, upper, off)),
+                                  np.asarray(box_meets_light(lower, upper, at_centres)))
+    expected = np.asarray(brute(GBUFFER, off, CAMERA.eye, **OPTIONS)[0])
+    np.testing.assert_array_equal(expected, np.asarray(brute(GBUFFER, at_centres, CAMERA.eye, **OPTIONS)[0]))
+    assert np.abs(expected - np.asarray(brute(GBUFFER, MIXED, CAMERA.eye, **OPTIONS)[0])).max() > 0.0
+    hdr, counters = render("clustered_deferred", {"assignment": "brute_force"}, SCENE.replace(lights=off))
+    assert_same(hdr, expected)
+    assert float(counters["exact_lighting_computations"]) == truly_reaching(off)
 
 
 def test_nearest_point_and_falloff_have_their_closed_forms():
@@ -207,19 +233,20 @@ def reference():
     return np.asarray(with_capsules), np.asarray(without)
 
 
-def render(technique_id, options):
-    """``technique_id`` shading the mixed lights: the deferred techniques called on the shared G-buffer,
-    the forward ones through their pipeline → (hdr, counters)."""
+def render(technique_id, options, scene=None):
+    """``technique_id`` shading the mixed lights (or ``scene``'s): the deferred techniques called on the
+    shared G-buffer, the forward ones through their pipeline → (hdr, counters)."""
+    scene = SCENE_MIXED if scene is None else scene
     technique = get(technique_id)
     params = {**default_params(technique), "ambient": jnp.asarray(OPTIONS["ambient"], jnp.float32),
               "background": jnp.asarray(OPTIONS["background"], jnp.float32)}
     options = validate_options(technique, {"light_chunk": OPTIONS["light_chunk"], **options})
     if all(b.name in GBUFFER or b.optional for b in technique.inputs):
         inputs = {b.name: GBUFFER[b.name] for b in technique.inputs if b.name in GBUFFER}
-        out, counters = jax.jit(lambda p, i, s: technique.apply(p, i, s, **options))(params, inputs, SCENE_MIXED)
+        out, counters = jax.jit(lambda p, i, s: technique.apply(p, i, s, **options))(params, inputs, scene)
         return np.asarray(out["hdr"]), counters
     pipeline = gp.pipeline_for(technique_id, outputs=("hdr",), **options)
-    frame = pipeline({**pipeline.init_params(), technique_id: params}, SCENE_MIXED)
+    frame = pipeline({**pipeline.init_params(), technique_id: params}, scene)
     return np.asarray(frame["hdr"]), frame["counters"][technique_id]
 
 

@@ -37,7 +37,10 @@ class Lights:
     (world units, ``inf`` for directional; around the segment for capsules); ``cos_inner``,
     ``cos_outer`` float32 [N] (spot cone: full intensity inside ``cos_inner``, none outside
     ``cos_outer``); ``length`` float32 [N] (a capsule's half-length along ``direction``, world units
-    ≥ 0; 0 for the other kinds)."""
+    ≥ 0; 0 for the other kinds). ``capsules`` (static, part of the pytree's structure): whether the
+    lengths are read at all; when False every light is shaded as having length 0, so that culling can
+    test lights as points, skipping the segment–box search (:func:`make_lights` sets it when any light
+    is a capsule)."""
 
     kind: jax.Array
     position: jax.Array
@@ -47,6 +50,7 @@ class Lights:
     cos_inner: jax.Array
     cos_outer: jax.Array
     length: jax.Array
+    capsules: bool = dataclasses.field(default=True, metadata=dict(static=True))
 
     @property
     def count(self) -> int:
@@ -121,6 +125,7 @@ def make_lights(
         cos_inner=jnp.asarray(np.cos(np.radians(inner)), jnp.float32),
         cos_outer=jnp.asarray(np.cos(np.radians(outer)), jnp.float32),
         length=jnp.asarray(np.where(k == CAPSULE, half, 0.0), jnp.float32),
+        capsules=bool((k == CAPSULE).any()),
     )
 
 
@@ -136,5 +141,13 @@ def no_lights() -> Lights:
 
 
 def concatenate_lights(groups: list[Lights]) -> Lights:
-    """Concatenates light lists into one."""
-    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *groups)
+    """Concatenates light lists into one (with capsules if any group has them)."""
+    arrays = {f.name: jnp.concatenate([getattr(g, f.name) for g in groups])
+              for f in dataclasses.fields(Lights) if f.name != "capsules"}
+    return Lights(**arrays, capsules=any(g.capsules for g in groups))
+
+
+def half_lengths(lights: Lights):
+    """The half-lengths [N] (world units) that shading and culling use: ``lights.length``, or zeros when
+    ``lights.capsules`` is False."""
+    return lights.length if lights.capsules else jnp.zeros_like(lights.length)

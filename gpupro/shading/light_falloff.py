@@ -47,7 +47,7 @@ import jax.numpy as jnp
 
 from gpupro.numerics import dot3
 
-from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
+from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights, half_lengths
 
 DISTANCE_EPSILON_SQ = 1e-4
 """ε in 1/(d² + ε), world units²: caps point-light irradiance at color/ε next to the light."""
@@ -100,10 +100,11 @@ def nearest_on_segment(point, position, direction, length):
 def representative_points(lights: Lights, points):
     """The point q(x) of each of N lights that shades each of P points (module docstring): the light's
     position for point and spot lights, the nearest segment point for capsules (meaningless for
-    directional lights, which have none). ``points`` [P, 3] world units. Returns [P, N, 3]."""
+    directional lights, which have none; every light's position where ``lights.capsules`` is False).
+    ``points`` [P, 3] world units. Returns [P, N, 3]."""
     column = lambda x: tuple(x[:, None, k] for k in range(3))
     row = lambda x: tuple(x[None, :, k] for k in range(3))
-    nearest = nearest_on_segment(column(points), row(lights.position), row(lights.direction), lights.length[None, :])
+    nearest = nearest_on_segment(column(points), row(lights.position), row(lights.direction), half_lengths(lights)[None, :])
     return jnp.stack(nearest, axis=-1)
 
 

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
+from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights, half_lengths
 from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
 from gpupro.shading.light_bounds import box_meets_light
 from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, nearest_on_segment, spot_falloff
@@ -78,8 +78,9 @@ def _pixel_arrays(points, terms: dict, padded: int) -> list:
 
 
 def _light_arrays(lights: Lights) -> list:
-    """The 14 per-light arrays [N] the kernel reads (``kind`` int32, the rest float32)."""
-    parts = [getattr(lights, name) for name in _LIGHTS_SCALAR]
+    """The 14 per-light arrays [N] the kernel reads (``kind`` int32, the rest float32; lengths as
+    :func:`gpupro.scene.lights.half_lengths` gives them)."""
+    parts = [half_lengths(lights) if name == "length" else getattr(lights, name) for name in _LIGHTS_SCALAR]
     for name in _LIGHTS_VECTOR:
         parts += _components(getattr(lights, name))
     return parts

@@ -57,6 +57,7 @@ def pad_lights(lights: Lights, *, count: int) -> Lights:
         cos_inner=pad(lights.cos_inner, 1.0),
         cos_outer=pad(lights.cos_outer, 0.0),
         length=pad(lights.length, 0.0),
+        capsules=lights.capsules,
     )
 
 

@@ -285,7 +285,7 @@ def culling_inputs(lights: Lights, camera: Camera, *, light_buffer: str):
     records = jax.lax.optimization_barrier(jnp.concatenate(columns, axis=1))
     unpacked = Lights(kind=records[:, 16].astype(jnp.int32), position=records[:, 7:10], direction=records[:, 10:13],
                       color=records[:, 4:7], range=records[:, 13], cos_inner=records[:, 14], cos_outer=records[:, 15],
-                      length=records[:, 17])
+                      length=records[:, 17], capsules=lights.capsules)
     return records[:, :3], records[:, 3], unpacked
 
 
