@@ -340,8 +340,12 @@ def backfacing(lower, upper, axis, half_angle, lights: Lights):
     """Whether each light lies behind every normal of its cluster's cone: ω > π/2 + α + δ (module
     docstring, step 4). Boxes ``lower``, ``upper`` [..., 3], cones ``axis`` [..., 3] and ``half_angle``
     [...]; the lights' fields broadcast against them (K pairs: [K] each; or clusters [C, 1] against
-    lights [1, N]). bool [...]. Written elementwise (``dot3``, no reductions) so that XLA fuses it into
-    the pair loop."""
+    lights [1, N]). bool [...].
+
+    Without inverse trigonometry per pair: with β = α + δ + :data:`CONE_MARGIN`, ω > π/2 + β can hold
+    (ω ≤ π) only for β < π/2, and there it is cos ω < cos(π/2 + β) = −sin β, where sin β and cos β follow
+    from the cone's sin, cos of α + margin (per cluster) and sin δ = R / d, cos δ = √(1 − sin² δ). Written
+    elementwise (``dot3``, no reductions) so that XLA fuses it into the pair loop."""
     centre = 0.5 * (lower + upper)
     diagonal = upper - lower
     radius = 0.5 * jnp.sqrt(dot3(diagonal, diagonal))
@@ -349,10 +353,16 @@ def backfacing(lower, upper, axis, half_angle, lights: Lights):
     towards = jnp.where(directional[..., None], -lights.direction, lights.position - centre)
     distance = jnp.sqrt(dot3(towards, towards))
     cos_omega = dot3(towards, axis) / jnp.maximum(distance, 1e-30)
-    omega = jnp.arccos(jnp.clip(cos_omega, -1.0, 1.0))
     radius = radius + lights.length  # a capsule lights from anywhere within its half-length of its centre
-    delta = jnp.where(directional, 0.0, jnp.where(distance > radius, jnp.arcsin(jnp.clip(radius / distance, 0.0, 1.0)), jnp.pi))
-    return omega > 0.5 * jnp.pi + half_angle + delta + CONE_MARGIN
+    cone = half_angle + CONE_MARGIN
+    sin_cone, cos_cone = jnp.sin(cone), jnp.cos(cone)
+    sin_delta = jnp.where(directional, 0.0, radius / jnp.maximum(distance, 1e-30))  # δ = 0 for directional lights
+    cos_delta = jnp.sqrt(jnp.maximum(1.0 - sin_delta * sin_delta, 0.0))
+    sin_beta = sin_cone * cos_delta + cos_cone * sin_delta
+    cos_beta = cos_cone * cos_delta - sin_cone * sin_delta
+    # A light within its cluster's bounding sphere (d ≤ R: δ = π) is never behind it.
+    below_right_angle = (cone < 0.5 * jnp.pi) & (cos_beta > 0.0) & (directional | (distance > radius))
+    return below_right_angle & (cos_omega < -sin_beta)
 
 
 def _leaf_tests(lower, upper, axis, half_angle, valid, lights: Lights, leaf_lower, leaf_upper, meets):
