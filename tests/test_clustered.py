@@ -10,8 +10,8 @@ import pytest
 from gpupro.scene import SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.techniques.lights.clustered import (
-    CONE_MARGIN, NO_KEY, assign_lights, build_clusters, cluster_keys, explicit_cones, implicit_bounds, shade_clustered,
-    slice_depths, to_view,
+    CONE_MARGIN, NO_KEY, assign_lights, backfacing, build_clusters, cluster_keys, explicit_cones, implicit_bounds,
+    shade_clustered, slice_depths, to_view,
 )
 from gpupro.techniques.lights.unique_clusters import find_clusters
 from gpupro.techniques.lights.deferred import shade_deferred
@@ -278,3 +278,32 @@ def test_auto_assignment_that_takes_the_tree_grows_its_overflowing_frontier():
         assert [capacity.option for _, capacity, _ in found] == (["frontier_capacity"] if used else []), assignment
         if used:
             assert grown(pipeline, counters, found)["clustered_deferred"].options["frontier_capacity"] == 40_000
+
+
+def test_backfacing_equals_its_angle_form():
+    # ω > π/2 + α + δ + margin with the angles themselves (float64 numpy), against the trigonometry-free form
+    rng = np.random.default_rng(5)
+    n_lights, n_boxes = 300, 200
+    lights = make_lights(rng.choice([0, 1, 2, 3], n_lights), position=rng.uniform(-10, 10, (n_lights, 3)),
+                         direction=rng.normal(size=(n_lights, 3)), range=rng.uniform(0.5, 5, n_lights),
+                         length=rng.uniform(0, 2, n_lights))
+    lower = rng.uniform(-10, 10, (n_boxes, 1, 3))
+    upper = lower + rng.uniform(0, 2, (n_boxes, 1, 3))
+    axis = rng.normal(size=(n_boxes, 1, 3))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    half_angle = np.where(rng.uniform(size=(n_boxes, 1)) < 0.1, np.pi, rng.uniform(0, 1.7, (n_boxes, 1)))
+    row = jax.tree_util.tree_map(lambda x: x[None], lights)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    got = np.asarray(backfacing(f32(lower), f32(upper), f32(axis), f32(half_angle), row))
+
+    lit = {k: np.asarray(getattr(lights, k), np.float64)[None] for k in ("kind", "position", "direction", "length")}
+    directional = lit["kind"] == 2
+    towards = np.where(directional[..., None], -lit["direction"], lit["position"] - 0.5 * (lower + upper))
+    distance = np.linalg.norm(towards, axis=-1)
+    omega = np.arccos(np.clip(np.sum(towards * axis, -1) / distance, -1, 1))
+    radius = 0.5 * np.linalg.norm(upper - lower, axis=-1) + lit["length"]
+    delta = np.where(directional, 0.0, np.where(distance > radius, np.arcsin(np.clip(radius / distance, 0, 1)), np.pi))
+    margin = omega - (0.5 * np.pi + half_angle + delta + CONE_MARGIN)
+    clear = np.abs(margin) > 1e-4  # away from the threshold, where float32 rounding cannot decide
+    assert clear.mean() > 0.99 and 0.05 < got.mean() < 0.5
+    np.testing.assert_array_equal(got[clear], (margin > 0)[clear])
