@@ -104,7 +104,8 @@ def representative_points(lights: Lights, points):
     ``points`` [P, 3] world units. Returns [P, N, 3]."""
     column = lambda x: tuple(x[:, None, k] for k in range(3))
     row = lambda x: tuple(x[None, :, k] for k in range(3))
-    nearest = nearest_on_segment(column(points), row(lights.position), row(lights.direction), half_lengths(lights)[None, :])
+    nearest = nearest_on_segment(column(points), row(lights.position), row(lights.direction),
+                                 half_lengths(lights)[None, :])
     return jnp.stack(nearest, axis=-1)
 
 
