@@ -14,8 +14,8 @@ from gpupro.config import ConfigError, build_scene, load_config
 from gpupro.scene import CAPSULE, POINT, SPOT, check_scene, make_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.shading import (
-    box_meets_light, transform_lights, incident_light, light_boxes, light_reaches, light_spheres,
-    segment_box_distance, sphere_meets_light,
+    box_meets_light, incident_light, light_boxes, light_reaches, light_spheres, segment_box_distance,
+    sphere_meets_light, transform_lights,
 )
 from gpupro.shading.light_loop import pad_lights
 from gpupro.technique import default_params, get, validate_options
