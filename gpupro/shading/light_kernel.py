@@ -104,14 +104,22 @@ def _source(point, light: dict):
     return nearest_on_segment(point, light["position"], light["direction"], light["length"])
 
 
-def incident_components(point, light: dict):
+def _offset(point, light: dict):
+    """``(q − x, |q − x|²)`` on component blocks, q the light's :func:`_source`: what the incident light and
+    the reach test share (computed once where a kernel needs both)."""
+    delta = tuple(q - x for q, x in zip(_source(point, light), point))
+    return delta, _dot(delta, delta)
+
+
+def incident_components(point, light: dict, offset=None):
     """The incident light of :func:`gpupro.shading.light_falloff.incident_light` on broadcastable component
     blocks: ``(to_light, scale)``, the unit direction towards the light (three blocks) and the factor with
     E⊥ = scale · colour (distance and spot falloff; 1 for directional lights). ``light``: component blocks
-    by name (:data:`_LIGHTS_SCALAR`, :data:`_LIGHTS_VECTOR`)."""
+    by name (:data:`_LIGHTS_SCALAR`, :data:`_LIGHTS_VECTOR`); ``offset``: :func:`_offset` of the point and
+    light where already computed."""
     directional = light["kind"] == DIRECTIONAL
-    delta = tuple(q - x for q, x in zip(_source(point, light), point))
-    distance = jnp.sqrt(jnp.maximum(_dot(delta, delta), _DISTANCE_SQ_MIN))
+    delta, distance_sq = _offset(point, light) if offset is None else offset
+    distance = jnp.sqrt(jnp.maximum(distance_sq, _DISTANCE_SQ_MIN))
     to_point_light = tuple(d / distance for d in delta)
     to_light = tuple(jnp.where(directional, -d, t) for d, t in zip(light["direction"], to_point_light))
     attenuation = distance_falloff(distance, jnp.where(directional, 1.0, light["range"]))
@@ -119,10 +127,12 @@ def incident_components(point, light: dict):
     return to_light, jnp.where(directional, 1.0, attenuation * jnp.where(light["kind"] == SPOT, cone, 1.0))
 
 
-def _radiance(point, terms: dict, light: dict):
+def _radiance(point, terms: dict, light: dict, reach: bool = False):
     """brdf · E⊥ · max(n·l, 0) (R, G, B) of broadcastable component blocks, as
-    :func:`gpupro.shading.light_loop.light_radiance` computes it (see the module docstring)."""
-    to_light, scale = incident_components(point, light)
+    :func:`gpupro.shading.light_loop.light_radiance` computes it (see the module docstring); with ``reach``
+    (static), a fourth block: :func:`_reaches`, from the same offset."""
+    offset = _offset(point, light)
+    to_light, scale = incident_components(point, light, offset)
     n_dot_l = _dot(terms["n"], to_light)
     lit = (n_dot_l > 0) & (terms["n_dot_v"] > 0)
     half = tuple(a + b for a, b in zip(terms["v"], to_light))
@@ -132,8 +142,9 @@ def _radiance(point, terms: dict, light: dict):
                 * terms["visibility_v"])
     v_dot_h = _dot(terms["v"], h)
     cosine = jnp.maximum(n_dot_l, 0.0)
-    return tuple(jnp.where(lit, d + specular * fresnel_schlick(v_dot_h, f0), 0.0) * (scale * c) * cosine
-                 for d, f0, c in zip(terms["diffuse"], terms["f0"], light["color"]))
+    rgb = tuple(jnp.where(lit, d + specular * fresnel_schlick(v_dot_h, f0), 0.0) * (scale * c) * cosine
+                for d, f0, c in zip(terms["diffuse"], terms["f0"], light["color"]))
+    return rgb + (_reach(offset, light),) if reach else rgb
 
 
 def _surface_of(column: list):
@@ -145,9 +156,9 @@ def _surface_of(column: list):
     return tuple(column[:3]), terms
 
 
-def _surface_term(column: list, light: dict):
+def _surface_term(column: list, light: dict, reach: bool = False):
     """:func:`_radiance` of the :func:`_pixel_arrays` columns."""
-    return _radiance(*_surface_of(column), light)
+    return _radiance(*_surface_of(column), light, reach)
 
 
 def _kernel(*refs, n_columns: int, n_group_arrays: int, n_outputs: int, n_lights: int, n_steps: int,
@@ -175,10 +186,9 @@ def _kernel(*refs, n_columns: int, n_group_arrays: int, n_outputs: int, n_lights
             passed = passes(lights_at(i, light_refs[_LIGHT_ARRAYS:])) & (index < n_lights)  # [1, L]
 
             def evaluate():  # the passing lights' terms only, as the XLA path's mask (at every point, sky too)
-                light = _light_of(lights_at(i, light_refs[:_LIGHT_ARRAYS]))
-                rgb = [jnp.where(passed, c, 0.0) for c in term(column, light)]
-                reached = _reaches(tuple(column[:3]), light) & passed
-                return add(total, rgb + [reached.astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)])
+                *rgb, reached = term(column, _light_of(lights_at(i, light_refs[:_LIGHT_ARRAYS])), reach=True)
+                rgb = [jnp.where(passed, c, 0.0) for c in rgb]
+                return add(total, rgb + [(reached & passed).astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)])
 
             # One branch for the whole program: a step none of whose lights passes reads and tests only its
             # bounds.
@@ -208,8 +218,9 @@ def light_sums(columns: list, lights: Lights, term, *, test: GroupTest | None = 
     the group padded to a power of two) points), sets the group's test up once from its group arrays,
     and sums only the lights that pass it, skipping a step where none passes: single-kernel tiled shading,
     which keeps no light list. Returns then ``(radiance [P, 3], reached [P], evaluated [P])`` float32:
-    the passing lights whose influence truly reaches each point, and the lights passing its group's test.
-    Not differentiable by itself.
+    the passing lights whose influence truly reaches each point, and the lights passing its group's test;
+    ``term`` is then called with ``reach=True`` and returns a fourth, bool block: whether the light truly
+    reaches the point (:func:`_reaches`, sharing the term's arithmetic). Not differentiable by itself.
     """
     n_points = columns[0].shape[0]
     groups = 1 if test is None else test.groups
@@ -292,10 +303,14 @@ fused_accumulate_lights.defvjp(_forward, _backward)
 def _reaches(point, light: dict):
     """:func:`gpupro.shading.light_loop.light_reaches` on component blocks: whether the light's influence
     truly reaches the point (in range of its representative point, and strictly inside a spot's outer cone)."""
-    delta = tuple(x - q for x, q in zip(point, _source(point, light)))
-    distance_sq = _dot(delta, delta)
+    return _reach(_offset(point, light), light)
+
+
+def _reach(offset, light: dict):
+    """:func:`_reaches` from the point's :func:`_offset` (q − x, |q − x|²)."""
+    delta, distance_sq = offset
     in_range = distance_sq < light["range"] * light["range"]
-    along_axis = _dot(delta, light["direction"])
+    along_axis = -_dot(delta, light["direction"])  # (x − q)·a, as light_reaches takes it
     in_cone = (along_axis > 0.0) & (along_axis * along_axis > distance_sq * (light["cos_outer"] * light["cos_outer"]))
     return (light["kind"] == DIRECTIONAL) | (in_range & ((light["kind"] != SPOT) | in_cone))
 
@@ -311,11 +326,10 @@ def _list_kernel(*refs, n_columns: int, n_lights: int, n_slots: int, term, count
         # [B] gathered light indices; past a point's list (or at a hole), n_lights: the zero light
         index = jnp.where(j < length, slots_ref[jnp.minimum(start + j, n_slots - 1)], n_lights)
         light = _light_of([r[index] for r in light_refs])
-        total = tuple(t + c for t, c in zip(carry, term(column, light)))
-        if count_reached:
-            reached = _reaches(tuple(column[:3]), light) & (index < n_lights)
-            total += (carry[3] + reached.astype(jnp.float32),)
-        return total
+        if not count_reached:
+            return tuple(t + c for t, c in zip(carry, term(column, light)))
+        *rgb, reached = term(column, light, reach=True)
+        return tuple(t + c for t, c in zip(carry, rgb)) + (carry[3] + (reached & (index < n_lights)).astype(jnp.float32),)
 
     zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
     # The block walks its longest list; shorter lists read the zero light past their end.
@@ -336,7 +350,9 @@ def list_sums(columns: list, lights: Lights, term, lists, rows, *, block_pixels:
     ``rows`` int32 [P]: the list each point evaluates. A block of ``block_pixels`` consecutive points
     loops over its longest list (up to the last filled slot), so neighbouring points should share lists
     (tiles, clusters, froxel blocks). Returns radiance [P, 3] and, with ``count_reached`` (static), [P] float32
-    counts of the listed lights whose influence truly reaches each point. Not differentiable by itself.
+    counts of the listed lights whose influence truly reaches each point: ``term`` is then called with
+    ``reach=True`` and returns a fourth, bool block (:func:`_reaches`, sharing the term's arithmetic). Not
+    differentiable by itself.
     """
     n_points = columns[0].shape[0]
     padded = -(-n_points // block_pixels) * block_pixels
