@@ -188,7 +188,8 @@ def _kernel(*refs, n_columns: int, n_group_arrays: int, n_outputs: int, n_lights
             def evaluate():  # the passing lights' terms only, as the XLA path's mask (at every point, sky too)
                 *rgb, reached = term(column, _light_of(lights_at(i, light_refs[:_LIGHT_ARRAYS])), reach=True)
                 rgb = [jnp.where(passed, c, 0.0) for c in rgb]
-                return add(total, rgb + [(reached & passed).astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)])
+                counts = [(reached & passed).astype(jnp.float32), zeros[:, None] + passed.astype(jnp.float32)]
+                return add(total, rgb + counts)
 
             # One branch for the whole program: a step none of whose lights passes reads and tests only its
             # bounds.
@@ -329,7 +330,8 @@ def _list_kernel(*refs, n_columns: int, n_lights: int, n_slots: int, term, count
         if not count_reached:
             return tuple(t + c for t, c in zip(carry, term(column, light)))
         *rgb, reached = term(column, light, reach=True)
-        return tuple(t + c for t, c in zip(carry, rgb)) + (carry[3] + (reached & (index < n_lights)).astype(jnp.float32),)
+        listed = index < n_lights
+        return tuple(t + c for t, c in zip(carry, rgb)) + (carry[3] + (reached & listed).astype(jnp.float32),)
 
     zeros = jnp.zeros((column_refs[0].shape[0],), jnp.float32)
     # The block walks its longest list; shorter lists read the zero light past their end.
