@@ -90,7 +90,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from gpupro.numerics import einsum
+from gpupro.numerics import dot3, einsum
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_bounds import light_spheres
@@ -424,7 +424,8 @@ def shade_tiled_single(surface: dict, view_depth, lights: Lights, camera: Camera
 def view_depth_of(position, camera: Camera):
     """Distance along the viewing axis [H, W] (world units) of world positions [H, W, 3]."""
     view = camera.view_matrix()
-    return -(einsum("j,hwj->hw", view[2, :3], jnp.asarray(position, jnp.float32)) + view[2, 3])
+    # a dot product fuses into its readers, where an einsum over [H, W, 3] is a GEMV kernel of its own on GPUs
+    return -(dot3(jnp.asarray(position, jnp.float32), view[2, :3]) + view[2, 3])
 
 
 def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds, kernel,
