@@ -78,7 +78,7 @@ def _clustered_stages(inputs, scene, options):
 def _tiled_stages(inputs, scene, options):
     """Tiled shading's light assignment: per-tile lists from screen bounds (and depth bounds); none for the
     single kernel, which tests the lights while it shades."""
-    from gpupro.techniques.lights.tiled import cull_lights
+    from gpupro.shading.tiles import cull_lights
 
     if options["kernel"] == "single":
         return {}
@@ -100,7 +100,7 @@ def _culling_stages(inputs, scene, options):
 def _fptl_stages(inputs, scene, options):
     """FPTL's coarse lists (tiled culling with depth bounds) and its fine pruning with the sort by type."""
     from gpupro.techniques.lights import fptl
-    from gpupro.techniques.lights.tiled import cull_lights
+    from gpupro.shading.tiles import cull_lights
 
     coarse = lambda lights, camera, depth, coverage: cull_lights(lights, camera, depth, coverage, tile=options["tile"],
                                                                  tile_capacity=options["tile_capacity"], depth_bounds=True)[0]

@@ -3,7 +3,7 @@
 The atrium with its trees (21 634 triangles, ``gpupro.scenes.atrium(trees=True)``) and N point lights
 (64 by default) of range 15 at positions uniform in the courtyard (x in [−11, 11], y in [1, 12], z in
 [−4.5, 4.5], ``numpy.random.default_rng(seed)``). Each light's six cube faces are rendered at S × S
-texels (512 by default) by :func:`gpupro.techniques.shadows.shadow_maps.build_shadow_maps`, one compiled
+texels (512 by default) by :func:`gpupro.shadows.maps.build_shadow_maps`, one compiled
 rasterizer call per face in turn (6 N maps). Compile time (first call) apart, then the median, min and
 max of ``--repeats`` calls, each ended by ``block_until_ready``; the rasterizer's work counters summed
 over the maps.
@@ -25,7 +25,7 @@ import numpy as np
 import gpupro as gp
 from gpupro.bench import device_info, time_function
 from gpupro.scene.lights import point_lights
-from gpupro.techniques.shadows.shadow_maps import build_shadow_maps
+from gpupro.shadows.maps import build_shadow_maps
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -19,6 +19,6 @@ from gpupro.pipeline import Pass, Pipeline, PipelineError, complete, default_pip
 from gpupro.raster import Fragments, antialias, interpolate, rasterize, reference
 from gpupro.render import render
 from gpupro.technique import TECHNIQUES, Technique
-from gpupro.techniques.raster.gbuffer import render_gbuffer
+from gpupro.raster.gbuffer import render_gbuffer
 
 __version__ = "0.2.0"

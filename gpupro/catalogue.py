@@ -12,10 +12,12 @@ config schema, never written by hand, so it cannot drift from the code.
 
 from __future__ import annotations
 
+import ast
 import importlib
 import inspect
 import math
 import pathlib
+import re
 
 from gpupro.technique import Technique, registered
 
@@ -91,10 +93,23 @@ def reference_page(technique: str | Technique) -> str:
                     c.doc + "".join(f"; used when {k} = {_when_value(v)}" for k, v in c.when)) for c in t.capacities])]
     if t.counters:
         parts += ["", "## Counters", "", _table(("counter", "doc"), [(f"`{c.name}`", c.doc) for c in t.counters])]
-    doc = inspect.getdoc(importlib.import_module(t.module))
+    module = importlib.import_module(t.module)
+    doc = inspect.getdoc(module)
     if doc:
         parts += ["", "## From the module", "", "```text", doc, "```"]
+    for name in _algorithm_modules(module):
+        parts += ["", f"## From {name}", "", "```text", inspect.getdoc(importlib.import_module(name)), "```"]
     return "\n".join(parts) + "\n"
+
+
+def _algorithm_modules(module) -> list[str]:
+    """The ops modules holding a technique's algorithm: those its module both imports and cites in its
+    docstring (``:mod:`gpupro.shading.clusters```), in the order cited, so that the technique's page shows
+    their equations too."""
+    cited = re.findall(r":mod:`(gpupro\.[a-z_.]+)`", inspect.getdoc(module) or "")
+    imported = {node.module for node in ast.walk(ast.parse(inspect.getsource(module)))
+                if isinstance(node, ast.ImportFrom) and node.module}
+    return list(dict.fromkeys(name for name in cited if name in imported and not name.startswith("gpupro.techniques")))
 
 
 def scenes_table() -> str:

@@ -7,7 +7,7 @@ import gpupro as gp
 from gpupro.pipeline.capacity import render_without_overflow
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
 from gpupro.scene.lights import concatenate_lights
-from gpupro.techniques.lights.deferred import DEFERRED_INPUTS
+from gpupro.shading.deferred import DEFERRED_INPUTS
 
 RES = (48, 48)
 SCENE = gp.scenes.cornell_box(resolution=RES)

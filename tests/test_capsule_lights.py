@@ -13,18 +13,16 @@ import gpupro as gp
 from gpupro.config import ConfigError, build_scene, load_config
 from gpupro.scene import CAPSULE, POINT, SPOT, check_scene, make_lights
 from gpupro.scene.lights import concatenate_lights
-from gpupro.shading import (
-    box_meets_light, incident_light, light_boxes, light_reaches, light_spheres, segment_box_distance,
-    sphere_meets_light, transform_lights,
-)
-from gpupro.shading.light_loop import pad_lights
+from gpupro.shading import (box_meets_light, incident_light, light_boxes, light_reaches, light_spheres,
+                            segment_box_distance, sphere_meets_light, transform_lights)
+from gpupro.shading.deferred import shade_deferred
+from gpupro.shading.light_linked_list import _ray_capsule
+from gpupro.shading.light_terms import pad_lights
+from gpupro.shading.tiles import to_tiles
+from gpupro.shadows.maps import ShadowMaps, build_shadow_maps, shadow_factor
 from gpupro.technique import default_params, get, validate_options
-from gpupro.techniques.lights.deferred import shade_deferred
 from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, shade_fptl
-from gpupro.techniques.lights.light_linked_list import _ray_capsule
 from gpupro.techniques.lights.stalker import light_support
-from gpupro.techniques.lights.tiled import to_tiles
-from gpupro.techniques.shadows.shadow_maps import ShadowMaps, build_shadow_maps, shadow_factor
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, SCENE, assert_same, mixed_lights, world_at_pixel
 
 rng = np.random.default_rng(11)

@@ -1,4 +1,4 @@
-"""Paper II's ways of finding unique clusters (gpupro.techniques.lights.unique_clusters) and Paper I's packed
+"""Paper II's ways of finding unique clusters (gpupro.shading.unique_clusters) and Paper I's packed
 light lists (gpupro.shading.light_lists) against the global sort, the padded lists and brute force."""
 
 import dataclasses
@@ -10,12 +10,12 @@ import pytest
 
 import gpupro as gp
 from gpupro.shading import accumulate_light_lists, view_terms
+from gpupro.shading.clusters import assign_lights, build_clusters, cluster_keys, shade_clustered, to_view
+from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_kernel import light_list_sums
 from gpupro.shading.light_lists import PackedLists, pack_light_lists
-from gpupro.techniques.lights.clustered import assign_lights, build_clusters, cluster_keys, shade_clustered, to_view
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.tiled import fill_light_lists, shade_tiled
-from gpupro.techniques.lights.unique_clusters import NO_KEY, find_clusters_by_page_table
+from gpupro.shading.tiles import fill_light_lists, shade_tiled
+from gpupro.shading.unique_clusters import NO_KEY, find_clusters_by_page_table
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, SCENE, assert_same, mixed_lights
 
 LIGHTS = mixed_lights()

@@ -9,13 +9,11 @@ import pytest
 
 from gpupro.scene import SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
-from gpupro.techniques.lights.clustered import (
-    CONE_MARGIN, NO_KEY, assign_lights, backfacing, build_clusters, cluster_keys, explicit_cones, implicit_bounds,
-    shade_clustered, slice_depths, to_view,
-)
-from gpupro.techniques.lights.unique_clusters import find_clusters
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.light_tree import build_light_tree, morton_codes
+from gpupro.shading.clusters import (CONE_MARGIN, assign_lights, backfacing, build_clusters, cluster_keys,
+                                     explicit_cones, implicit_bounds, shade_clustered, slice_depths, to_view)
+from gpupro.shading.deferred import shade_deferred
+from gpupro.shading.light_tree import build_light_tree, morton_codes
+from gpupro.shading.unique_clusters import NO_KEY, find_clusters
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights, ten_thousand_lights
 
 TILE = 16

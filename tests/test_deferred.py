@@ -8,13 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from gpupro.raster import MIN_NORMAL_DOT_VIEW, Fragments
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights, make_materials, make_mesh, no_lights, point_lights
 from gpupro.scene.light_generators import uniform_in_box
-from gpupro.raster import Fragments
-from gpupro.raster import MIN_NORMAL_DOT_VIEW
 from gpupro.shading import DIELECTRIC_F0, DISTANCE_EPSILON_SQ
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.forward import shade_forward
+from gpupro.shading.deferred import shade_deferred, shade_forward
 
 EYE = np.array([0.0, 3.0, 3.0], np.float32)
 SHAPE = (8, 8)

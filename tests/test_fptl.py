@@ -8,10 +8,10 @@ import pytest
 from gpupro.scene import CAPSULE, POINT, SPOT, make_lights, no_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.shading import light_reaches
+from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_kernel import tile_list_hits
-from gpupro.techniques.lights.deferred import shade_deferred
+from gpupro.shading.tiles import cull_lights, shade_tiled, to_tiles
 from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, prune_light_lists, shade_fptl
-from gpupro.techniques.lights.tiled import cull_lights, shade_tiled, to_tiles
 from many_lights_scene import CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 TILE = 16

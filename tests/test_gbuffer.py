@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import gpupro.scene as sc
-from gpupro.techniques.raster.gbuffer import render_gbuffer
+from gpupro.raster.gbuffer import render_gbuffer
 from gpupro.raster.texture import bilinear, level_of_detail, sample_trilinear
 
 RES = (48, 64)

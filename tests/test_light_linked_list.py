@@ -8,11 +8,9 @@ import pytest
 from gpupro.pipeline import make_pass
 from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import accumulate_lights, light_reaches, view_directions
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.light_linked_list import (
-    build_light_linked_list, downsample_max_depth, fill_pool, linked_list_bytes, shade_light_linked_list,
-    shade_samples,
-)
+from gpupro.shading.deferred import shade_deferred
+from gpupro.shading.light_linked_list import (build_light_linked_list, downsample_max_depth, fill_pool,
+                                              linked_list_bytes, shade_light_linked_list, shade_samples)
 from many_lights_scene import (
     CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights, ten_thousand_lights, world_at_pixel,
 )

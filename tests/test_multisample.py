@@ -15,7 +15,7 @@ from gpupro.pipeline import PipelineError
 from gpupro.raster import Fragments, rasterize, reference, resolve, sample_weights, surface_from_fragments
 from gpupro.raster.setup import SAMPLE_PATTERNS
 from gpupro.scene.camera import look_at, perspective, to_clip
-from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, shade_deferred
+from gpupro.shading.deferred import DEFERRED_INPUTS, shade_deferred
 
 RES = (32, 32)  # a power of two: NDC ↔ window conversions of 1/256-pixel positions are exact
 MS = (pytest.param(2, marks=pytest.mark.slow), 4, 8)  # 2 samples under -m slow: CI time

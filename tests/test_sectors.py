@@ -10,7 +10,7 @@ from gpupro.scene.lights import concatenate_lights
 from gpupro.scene.procedural import DOORS, ROOMS
 from gpupro.scene.sectors import Sectors, make_sectors, sector_rects
 from gpupro.shading import light_reaches
-from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, shade_deferred
+from gpupro.shading.deferred import DEFERRED_INPUTS, shade_deferred
 from gpupro.techniques.lights.stalker import cull_lights, shade_stalker
 
 RES = (32, 32)

@@ -11,14 +11,8 @@ import pytest
 import trimesh
 
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_camera, make_lights, make_mesh
-from gpupro.techniques.shadows.shadow_maps import (
-    build_shadow_maps,
-    cube_face,
-    directional_light_matrix,
-    frustum_corners,
-    project_to_shadow_maps,
-    shadow_factor,
-)
+from gpupro.shadows.maps import (build_shadow_maps, cube_face, directional_light_matrix, frustum_corners,
+                                 project_to_shadow_maps, shadow_factor)
 
 S = 64
 SLAB = ((-1.5, 0.9, -1.5), (1.5, 1.0, 1.5))

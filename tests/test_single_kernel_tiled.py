@@ -12,11 +12,11 @@ import pytest
 import gpupro as gp
 from gpupro.pipeline.capacity import capacities, has_lossy_capacity, overflows
 from gpupro.scene import POINT, make_lights, no_lights
-from gpupro.shading.brdfs import view_terms
 from gpupro.shading import light_kernel
+from gpupro.shading.brdfs import view_terms
+from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_loop import accumulate_culled_lights, view_directions
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.tiled import shade_tiled, shade_tiled_single, tile_test, to_tiles
+from gpupro.shading.tiles import shade_tiled, shade_tiled_single, tile_test, to_tiles
 from many_lights_scene import CAMERA, GBUFFER, OPTIONS, RES, assert_same, mixed_lights
 
 single = jax.jit(shade_tiled_single, static_argnames=("distribution", "light_chunk", "tile", "depth_bounds"))

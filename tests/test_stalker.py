@@ -10,12 +10,11 @@ import gpupro as gp
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights, no_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.shading import light_reaches, light_spheres, transform_lights
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.stalker import (
-    cull_lights, depth_extents, layer_roughness, light_support, lookup_material, lut_lobe, material_lut,
-    max_depth_pyramid, pixel_spans, shade_stalker,
-)
-from gpupro.techniques.lights.tiled import screen_bounds
+from gpupro.shading.deferred import shade_deferred
+from gpupro.shading.tiles import screen_bounds
+from gpupro.techniques.lights.stalker import (cull_lights, depth_extents, layer_roughness, light_support,
+                                              lookup_material, lut_lobe, material_lut, max_depth_pyramid, pixel_spans,
+                                              shade_stalker)
 from many_lights_scene import (
     CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights,
     ten_thousand_lights,

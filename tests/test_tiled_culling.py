@@ -9,12 +9,11 @@ import pytest
 from gpupro.pipeline import make_pass
 from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.lights.tiled import tile_depth_bounds, to_tiles
-from gpupro.techniques.lights.tiled_culling import (
-    cull_tiles, culling_counters, partition_corners, pixel_partitions, per_pixel, shade_culled,
-    side_planes, tile_corner_rays, tile_depth_partitions,
-)
+from gpupro.shading.deferred import shade_deferred
+from gpupro.shading.tiles import tile_depth_bounds, to_tiles
+from gpupro.techniques.lights.tiled_culling import (cull_tiles, culling_counters, partition_corners, per_pixel,
+                                                    pixel_partitions, shade_culled, side_planes, tile_corner_rays,
+                                                    tile_depth_partitions)
 from many_lights_scene import (
     CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights,
     ten_thousand_lights,

@@ -7,9 +7,9 @@ import pytest
 
 from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
-from gpupro.techniques.lights.deferred import shade_deferred
+from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_bounds import light_spheres
-from gpupro.techniques.lights.tiled import shade_tiled
+from gpupro.shading.tiles import shade_tiled
 from many_lights_scene import CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
 
 STATIC = ("distribution", "light_chunk", "tile", "tile_capacity", "depth_bounds")

@@ -17,9 +17,9 @@ from gpupro.pipeline.capacity import render_without_overflow
 from gpupro.raster import rasterize, reference, split_faces
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
 from gpupro.scene.lights import concatenate_lights
+from gpupro.shading.tiles import tile_light_lists
 from gpupro.technique import get, validate_options
 from gpupro.techniques.lights import translucent_forward as tf
-from gpupro.techniques.lights.tiled import tile_light_lists
 from gpupro.techniques.raster.translucent_layers import peel_layers
 
 RES = (32, 32)

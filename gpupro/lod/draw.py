@@ -3,7 +3,7 @@
 The LOD techniques make their triangles each frame (clipmap rings, terrain rings, blades, the water
 grid). Each is drawn as the scene's own mesh would be: rasterized from the scene's camera
 (:func:`gpupro.rasterize`), reconstructed into a G-buffer (:func:`gpupro.raster.surface_from_fragments`)
-and shaded by brute force over the scene's lights (:func:`gpupro.techniques.lights.deferred.shade_deferred`),
+and shaded by brute force over the scene's lights (:func:`gpupro.shading.deferred.shade_deferred`),
 so a terrain pass and the many-light passes shade alike. Over an earlier image ``hdr`` with window
 depths ``depth`` (the scene's frame), a pixel shows the generated surface where it is nearer:
 
@@ -21,15 +21,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.numerics import dot3
-from gpupro.raster import antialias as antialias_edges
-from gpupro.raster import rasterize
+from gpupro.raster import antialias as antialias_edges, rasterize
+from gpupro.raster.gbuffer import gbuffer_from_fragments
 from gpupro.scene.camera import to_clip
 from gpupro.scene.materials import Materials, make_materials
 from gpupro.scene.mesh import Mesh
 from gpupro.scene.scene import Scene
+from gpupro.shading.deferred import shade_deferred
 from gpupro.technique import Buffer
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.techniques.raster.gbuffer import gbuffer_from_fragments
 
 
 def terrain_materials(base_colors) -> Materials:
@@ -48,7 +47,7 @@ def draw_generated(mesh: Mesh, materials: Materials, scene: Scene, *, ambient=(0
     earlier frame is; ``hdr`` [H, W, 3] and ``depth`` [H, W] (window depth, 1 where empty): the earlier
     frame, or None; ``antialias`` (static): blend silhouettes analytically (module docstring);
     ``shade``: None for the deferred shading of the scene's lights, or a function of the G-buffer dict
-    (:data:`gpupro.techniques.raster.gbuffer.GBUFFER_BUFFERS`, [H, W(, C)]) → radiance [H, W, 3] for a
+    (:data:`gpupro.raster.gbuffer.GBUFFER_BUFFERS`, [H, W(, C)]) → radiance [H, W, 3] for a
     surface with its own lighting model (water).
 
     Returns ``(buffers, counters)``: ``hdr`` [H, W, 3] (linear radiance), ``depth`` [H, W] (window depth

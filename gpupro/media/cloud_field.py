@@ -54,8 +54,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gpupro.media.noise import improved_noise
 from gpupro.media.volumes import trilinear
 from gpupro.numerics import dot3
+from gpupro.technique import Buffer, Check, Option, Param, integer, number
 
 _NOISE_AMPLITUDE = 0.5  # A
 _NOISE_FREQUENCY = 1.5  # F, lattice cells per unit radius
@@ -83,16 +85,8 @@ class CloudLattice(typing.NamedTuple):
     cell_density: jax.Array  # [P] base density b of the slot's cell (before the 3D noise)
 
 
-def _noise():
-    # Imported here: gpupro.techniques imports every technique, and clouds.py imports this module.
-    from gpupro.techniques.media.volumetric_fog import improved_noise
-
-    return improved_noise
-
-
 def _fbm(points, *, seed):
     """Σ_{o<3} 0.7^o N(1.7^o x + o_o) [...] at ``points`` [..., 3] (lattice units), about [−1.6, 1.6]."""
-    improved_noise = _noise()
     total = 0.0
     for frequency, amplitude, offset in _OCTAVES:
         shifted = points * frequency + jnp.asarray(offset, jnp.float32)
@@ -390,3 +384,73 @@ def particle_bounds(cloud: CloudParticles):
     hi = jnp.max(jnp.where(valid, cloud.centres + cloud.radii[:, None], -jnp.inf), axis=0)
     empty = ~jnp.any(cloud.valid)
     return jnp.where(empty, 0.0, lo), jnp.where(empty, 0.0, hi)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Declarations shared by the techniques drawing this field (the real-time clouds and their path-traced truth)
+
+
+def dims_check(count: int, lo: int = 1) -> Check:
+    """An option check: ``count`` integers >= ``lo`` (a list, or a string like "16x16x16"; :func:`dims`)."""
+    return Check(lambda v: (d := dims(v, count)) is not None and min(d) >= lo and not isinstance(v, int),
+                 f"{count} integers >= {lo}: a list, or a string like '{'x'.join(['16'] * count)}'")
+
+
+CENTRE = Check(lambda v: centre_xz(v) is not None, "two finite numbers (x, z), or a string 'x, z'")
+
+MULTIPLE_OF_4 = Check(lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 4 and v % 4 == 0,
+                      "an integer >= 4, a multiple of 4")
+
+FIELD_OPTIONS = (
+    Option("grid_centre", (0.0, 0.0), CENTRE, "(x, z) of the cell grid's centre (world units; the chapter's camera)"),
+    Option("altitude", 1500.0, number(), "mid altitude y₀ of the cloud layer (world units)"),
+    Option("cell_size", 100.0, number(0.0, strict_lo=True), "edge s₀ of the innermost ring's cells and lattice voxels "
+                                                            "(world units)"),
+    Option("rings", 4, integer(1, 10), "rings of the cell grid (chapter: 4–5); each outer one doubles size and "
+                                       "spacing"),
+    Option("ring_dimension", 120, MULTIPLE_OF_4, "cells D per ring side (chapter: 120–216)"),
+    Option("cell_layers", 3, integer(1), "lattice layers L of the innermost ring (chapter: 3–8); thickness L · s₀"),
+    Option("cloud_coverage", 0.5, number(0.0, 0.999), "threshold θ of the 2D coverage noise (higher: fewer clouds)"),
+    Option("cloud_coverage_scale", 2000.0, number(0.0, strict_lo=True), "feature size of the 2D coverage noise (world "
+                                                                  "units)"),
+    Option("noise_scale", 400.0, number(0.0, strict_lo=True), "feature size of the 3D density noise (world units)"),
+    Option("altitude_falloff", 1.1, number(0.0), "linear fall of the density with relative altitude (chapter: 1.1)"),
+    Option("particle_radius", 0.8, number(0.0, strict_lo=True), "particle radius, a fraction of its ring's voxel edge"),
+    Option("position_jitter", 0.5, number(0.0, 1.0), "random displacement of particles, a fraction of the voxel edge"),
+    Option("radius_jitter", 0.2, number(0.0, 0.99), "random relative change of the particle radii"),
+    Option("seed", 0, integer(0), "seed of the noise and the jitter"),
+)
+"""The field's options, as both cloud techniques declare them: same names, defaults and checks."""
+
+FIELD_KEYS = tuple(o.name for o in FIELD_OPTIONS)
+"""The options that define the field (:func:`cloud_particles`' keywords)."""
+
+LATTICE_OPTION = Option("lattice_resolution", (64, 8, 64), dims_check(3), "cells of the density lattice marched towards the sun")
+
+FIELD_EXAMPLE = {"grid_centre": (0.0, 0.0), "altitude": -24.0, "cell_size": 20.0, "rings": 2, "ring_dimension": 4,
+                 "cell_layers": 2, "cloud_coverage": 0.2, "cloud_coverage_scale": 60.0, "noise_scale": 20.0}
+"""A small field (a few dozen particles near the origin) for the techniques' example options."""
+
+CLOUD_PARAMS = (
+    Param("extinction", 0.07, "1/world unit", "extinction = scattering coefficient β (chapter: 0.07 per metre)",
+          lower=0.0),
+    Param("density_scale", 1.0, "1", "scale k of every particle's density", lower=0.0),
+    Param("phase_g", 0.8, "1", "runtime HG g of the single-scattering term (chapter: 0.8)", lower=-0.99, upper=0.99),
+    Param("sun_direction", (0.3, 0.6, -0.75), "1", "direction towards the sun, world axes (normalised here)"),
+    Param("sun_color", (1.0, 1.0, 1.0), "W/m²", "irradiance E_sun of the sunlight reaching the clouds (RGB)",
+          lower=0.0),
+    Param("ambient_color", (0.25, 0.3, 0.4), "W/(m² sr)", "ambient sky radiance L_amb (RGB)", lower=0.0),
+    Param("multiple_mass_scale", 0.25, "1", "scale μ of the sun-attenuating mass for multiple scattering (chapter: "
+                                           "0.25)", lower=0.0),
+    Param("ambient_floor", 0.3, "1", "lower clamp f of the ambient strength (chapter: 0.3)", lower=0.0, upper=1.0),
+    Param("albedo", 1.0, "1", "single-scattering albedo α = σ_s/σ_t scaling the sunlit terms (chapter: 1; the "
+                              "tables are built for 1, so this is a fitting knob, not αⁿ per order)",
+          lower=0.0, upper=1.0),
+    Param("multiple_scale", 1.0, "1", "scale s of the multiple-scattering term (chapter's Listing 4.5: 1; its "
+                                      "demo code: π)", lower=0.0),
+)
+"""The real-time model's parameters; the path-traced truth shares those of the medium and the light."""
+
+CLOUD_INPUTS = (Buffer("hdr", "linear radiance of the scene behind the clouds (surfaces, or sky where empty)", "RGB"),
+                Buffer("view_depth", "distance along the viewing axis (world units), 0 where empty", "Z"),
+                Buffer("coverage", "1 where a triangle is visible, 0 where empty", "Y"))

@@ -11,6 +11,8 @@ t = z / (d·f), which :func:`pixel_rays` returns as ``depth_to_t``.
 
 Ray–box: the slab method, t ∈ [max_k t_near,k, min_k t_far,k] with t_near,far,k = (lo_k − o_k)/d_k,
 (hi_k − o_k)/d_k swapped where d_k < 0.
+
+A volume placed in front of the camera (:func:`volume_box`): a cube centred on the camera's axis.
 """
 
 from __future__ import annotations
@@ -69,3 +71,19 @@ def ray_box(origins, directions, lo, hi):
     t_enter = jnp.maximum(jnp.maximum(near[..., 0], near[..., 1]), jnp.maximum(near[..., 2], 0.0))
     t_exit = jnp.minimum(jnp.minimum(far[..., 0], far[..., 1]), far[..., 2])
     return t_enter, t_exit
+
+
+def volume_box(camera, *, placement, box_size):
+    """World corners ``(lo, hi)`` [3] of the volume's cube: centred at target + ``placement`` · (eye −
+    target) on the camera's axis (0: the target; negative: beyond it), of edge ``box_size`` (world units; if
+    None, d · tan(fov/2) at the centre's distance d from the eye, half the ortho height for orthographic
+    cameras)."""
+    middle = camera.target + placement * (camera.eye - camera.target)
+    if box_size is not None:
+        edge = jnp.float32(box_size)
+    elif camera.projection == "perspective":
+        offset = middle - camera.eye
+        edge = jnp.sqrt(dot3(offset, offset)) * jnp.tan(0.5 * camera.fov_y)
+    else:
+        edge = 0.5 * camera.ortho_height
+    return middle - 0.5 * edge, middle + 0.5 * edge

@@ -35,6 +35,7 @@ their callers do not notice.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import heapq
 import inspect
 import types
@@ -43,6 +44,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+
+from gpupro.technique import OptionError, Technique, default_params, registered, validate_options
 
 COUNTERS = "counters"
 
@@ -117,6 +120,31 @@ class Pass:
         object.__setattr__(self, "bind", types.MappingProxyType(dict(self.bind)))
         self._check_signature()
 
+    @classmethod
+    def of_technique(cls, spec: Technique, *, name: str | None = None, params: Mapping[str, Any] | None = None,
+                     inputs: Mapping[str, str] | None = None, **options) -> Pass:
+        """A pass running the registered specification ``spec`` (:func:`gpupro.pipeline.passes.make_pass`
+        takes an id): ``options`` checked against it (defaults filled in), ``params`` for some of its
+        parameters (checked; the rest take their defaults), ``inputs`` buffers to read instead of the
+        declared ones, ``{declared input: buffer}``, and ``name`` (default: the technique id). Raises
+        :class:`gpupro.technique.OptionError` naming the option, parameter or input."""
+        values = validate_options(spec, options)
+        declared = {b.name for b in spec.inputs}
+        binding = dict(inputs or {})
+        for key, buffer in binding.items():
+            if key not in declared:
+                raise OptionError(key, f"not an input of technique {spec.id!r} (inputs: {', '.join(sorted(declared)) or 'none'})")
+            if not isinstance(buffer, str) or not buffer:
+                raise OptionError(key, f"expected a buffer name, got {buffer!r}")
+        wired = lambda b: binding.get(b.name, b.name)
+        init_state = None if spec.init_state is None else functools.partial(spec.init_state, **values)
+        return cls(name or spec.id, spec.apply,
+                   inputs=tuple(wired(b) for b in spec.inputs if not b.optional),
+                   optional=tuple(wired(b) for b in spec.inputs if b.optional),
+                   outputs=tuple(b.name for b in spec.outputs), options=values,
+                   params=default_params(spec, params), init_state=init_state, technique=spec,
+                   bind={buffer: key for key, buffer in binding.items()})
+
     @property
     def stateful(self) -> bool:
         return self.init_state is not None
@@ -144,8 +172,6 @@ class Pass:
             return
         for buffer in self.technique.inputs:
             if buffer.name in inputs and buffer.multisampled(inputs[buffer.name]):
-                from gpupro.technique import registered  # the registry imports the techniques
-
                 shape = list(jnp.shape(inputs[buffer.name]))
                 takers = sorted(t for t, spec in registered().items() if spec.multisample)
                 named = f"pass {self.name!r}" + ("" if self.name == self.technique.id else f" ({self.technique.id})")
@@ -345,17 +371,15 @@ class Pipeline:
     def with_options(self, name: str, **options: Any) -> Pipeline:
         """A new pipeline in which pass ``name`` has ``options`` updated (others kept, params kept).
 
-        Passes made from a registered technique are rebuilt by :func:`gpupro.pipeline.passes.make_pass`,
-        so the new options are validated as when the pass was first built.
+        Passes made from a registered technique are rebuilt by :meth:`Pass.of_technique`, so the new
+        options are validated as when the pass was first built.
         """
         old = self[name]
         if old.technique is None:
             return self.replace(name, dataclasses.replace(old, options={**old.options, **options}))
-        from gpupro.pipeline.passes import make_pass  # the factory builds on this module
-
         inputs = {declared: buffer for buffer, declared in old.bind.items()}
-        return self.replace(name, make_pass(old.technique, name=name, params=old.params, inputs=inputs,
-                                            **{**old.options, **options}))
+        return self.replace(name, Pass.of_technique(old.technique, name=name, params=old.params, inputs=inputs,
+                                                    **{**old.options, **options}))
 
     def describe(self) -> str:
         """Passes in execution order with their inputs → outputs, options and whether they have params."""

@@ -9,12 +9,11 @@ params are the technique's defaults (or ``params=...``). A pass is named after i
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from gpupro.pipeline.graph import Pass, Pipeline, PipelineError
-from gpupro.technique import OptionError, Technique, default_params, get, registered, validate_options
+from gpupro.technique import Technique, get, registered
 
 STANDARD = ("raster", "gbuffer", "shadow_maps", "deferred", "post")
 """Producers preferred when a pipeline is completed around one technique (:func:`pipeline_for`)."""
@@ -32,22 +31,7 @@ def make_pass(technique: str | Technique, *, name: str | None = None, params: Ma
     naming the option, parameter or input.
     """
     spec = get(technique) if isinstance(technique, str) else technique
-    values = validate_options(spec, options)
-    declared = {b.name for b in spec.inputs}
-    binding = dict(inputs or {})
-    for key, buffer in binding.items():
-        if key not in declared:
-            raise OptionError(key, f"not an input of technique {spec.id!r} (inputs: {', '.join(sorted(declared)) or 'none'})")
-        if not isinstance(buffer, str) or not buffer:
-            raise OptionError(key, f"expected a buffer name, got {buffer!r}")
-    wired = lambda b: binding.get(b.name, b.name)
-    init_state = None if spec.init_state is None else functools.partial(spec.init_state, **values)
-    return Pass(name or spec.id, spec.apply,
-                inputs=tuple(wired(b) for b in spec.inputs if not b.optional),
-                optional=tuple(wired(b) for b in spec.inputs if b.optional),
-                outputs=tuple(b.name for b in spec.outputs), options=values,
-                params=default_params(spec, params), init_state=init_state, technique=spec,
-                bind={buffer: key for key, buffer in binding.items()})
+    return Pass.of_technique(spec, name=name, params=params, inputs=inputs, **options)
 
 
 def _made(technique: str, example: bool, **options) -> Pass:

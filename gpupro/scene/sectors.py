@@ -8,7 +8,7 @@ available from the data set"); the chapter gives no algorithm, so this is the cl
 A layout is K sectors, axis-aligned boxes B_k = [lo_k, hi_k] (world units) with disjoint interiors, and
 P portals, planar quadrilaterals Q_p (4 corners) each joining two sectors a_p, b_p, traversed both ways.
 Screen rectangles are (x_min, x_max, y_min, y_max) in pixels (x right from the left edge, y down from
-the top, as :func:`gpupro.techniques.lights.tiled.screen_bounds`); ∅ = (+inf, −inf, +inf, −inf).
+the top, as :func:`gpupro.shading.tiles.screen_bounds`); ∅ = (+inf, −inf, +inf, −inf).
 
 - Start: every sector whose box meets the axis-aligned bounds of the near-plane rectangle gets the
   screen S = [0, W] × [0, H]; the others ∅. (No sector meeting it: the camera is outside the level and

@@ -43,7 +43,7 @@ from gpupro.shading.brdfs import _visibility1_ggx, d_ggx, fresnel_schlick
 from gpupro.shading.light_bounds import box_meets_light
 from gpupro.shading.light_falloff import _DISTANCE_SQ_MIN, distance_falloff, nearest_on_segment, spot_falloff
 from gpupro.shading.light_lists import flat_list_reads
-from gpupro.shading.light_loop import GroupTest, light_radiance, pad_lights, sum_over_lights
+from gpupro.shading.light_terms import GroupTest, light_radiance, pad_lights, sum_over_lights
 
 _TERMS_SCALAR = ("n_dot_v", "alpha", "visibility_v")
 _TERMS_VECTOR = ("n", "v", "f0", "diffuse")

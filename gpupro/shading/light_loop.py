@@ -29,119 +29,21 @@ however many lights there are. The chunk body is rematerialised under reverse-mo
 from __future__ import annotations
 
 import functools
-import typing
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from gpupro.numerics import dot3
-from gpupro.scene.lights import DIRECTIONAL, POINT, SPOT, Lights
-from gpupro.shading.brdfs import DISTRIBUTIONS, brdf_towards, view_terms
-from gpupro.shading.light_falloff import incident_light, representative_points
+from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
+from gpupro.shading.brdfs import DISTRIBUTIONS, view_terms
+from gpupro.shading.light_falloff import representative_points
+from gpupro.shading.light_kernel import culled_light_sums, fused_accumulate_lights, light_list_sums
 from gpupro.shading.light_lists import list_chunks, longest_list, with_empty_row
+from gpupro.shading.light_terms import (GroupTest, default_light_chunk, light_radiance, pad_lights, sum_over_lights,
+                                        surface_terms, with_unshadowed_column)
 
 _VIEW_LENGTH_MIN = 1e-12  # floor under |e − x| so v is finite when a point sits at the eye
-
-
-def pad_lights(lights: Lights, *, count: int) -> Lights:
-    """``lights`` (N) followed by ``count`` point lights of zero colour (range 1, so d/r stays finite),
-    which add exactly 0 to any sum over lights: N + count lights, e.g. to fill whole chunks."""
-    pad = lambda x, value: jnp.pad(x, [(0, count)] + [(0, 0)] * (x.ndim - 1), constant_values=value)
-    return Lights(
-        kind=pad(lights.kind, POINT),
-        position=pad(lights.position, 0.0),
-        direction=pad(lights.direction, 0.0),
-        color=pad(lights.color, 0.0),
-        range=pad(lights.range, 1.0),
-        cos_inner=pad(lights.cos_inner, 1.0),
-        cos_outer=pad(lights.cos_outer, 0.0),
-        length=pad(lights.length, 0.0),
-        capsules=lights.capsules,
-    )
-
-
-def default_light_chunk() -> int:
-    """Lights (or list slots) per scan step when none is given: 32 on GPUs, 64 on CPUs.
-
-    Measured on an H200 at 1920×1080 (docs/benchmarks.md): brute force over 1,024 lights took 70, 43,
-    41 and 39 ms with 8, 32, 64 and 128 lights a step (peak intermediate [H·W, chunk, 3] floats, 0.8
-    GB at 32); tiled deferred over 2,400 lights 34 ms with 8 slots a step and 29 ms with 32. On the
-    2-core CPU, 64 was 1.5× faster than 256.
-    """
-    return 32 if jax.default_backend() == "gpu" else 64
-
-
-def light_radiance(points, terms: dict, lights: Lights, visibility=None, *, distribution: str):
-    """brdf(n, v, l_i) · E⊥_i · max(n·l_i, 0) · s_i of each of M lights at each of P points: the per-light
-    arithmetic that every light loop (all lights, or culled per-tile lists) shares.
-
-    ``points`` [P, 3] world positions; ``terms``: the points' :func:`gpupro.shading.brdfs.view_terms`
-    with a light axis of size 1 (:func:`surface_terms`), computed once outside the loop over lights;
-    ``lights``: M lights; ``visibility``: None or [P, M] shadow factors s_i in [0, 1];
-    ``distribution`` (static). Returns radiance [P, M, 3] (W/(m² sr)).
-    """
-    to_light, irradiance = incident_light(lights, points)  # [P, M, 3] each
-    f, n_dot_l = brdf_towards(terms, to_light, distribution=distribution)
-    radiance = f * irradiance * jnp.maximum(n_dot_l, 0.0)[..., None]
-    if visibility is not None:
-        radiance = radiance * visibility[..., None]
-    return radiance
-
-
-def surface_terms(normals, views, base_color, roughness, metallic, *, distribution: str) -> dict:
-    """The light-independent BRDF factors (:func:`gpupro.shading.brdfs.view_terms`) of P points with a
-    light axis of size 1, as :func:`light_radiance` takes them: ``normals``, ``views``, ``base_color``
-    [P, 3]; ``roughness``, ``metallic`` [P]."""
-    return view_terms(normals[:, None, :], views[:, None, :], base_color=base_color[:, None, :],
-                      roughness=roughness[:, None], metallic=metallic[:, None], distribution=distribution)
-
-
-def _with_unshadowed_column(shadow, n_points: int):
-    """[P, K] shadow factors → [P, K + 1]: one column of ones stands for every unshadowed (and padding)
-    light, so a chunk gathers its factors from a [P, K + 1] array instead of a [P, N] one."""
-    return jnp.concatenate([jnp.asarray(shadow, jnp.float32), jnp.ones((n_points, 1), jnp.float32)], axis=1)
-
-
-def sum_over_lights(term, lights: Lights, n_points: int, *, shadow=None, light_chunk: int | None = None,
-                    per_light=None, channels: int = 3):
-    """Σ_i term(lights)[:, i] · s_i over N lights, as a scan over chunks of ``light_chunk`` lights: the
-    loop of every all-lights sum (surface shading, in-scattering in media).
-
-    ``term``: a function of M lights → [P, M, C] (called on chunks of them, padded with zero-colour
-    lights whose term must be 0: :func:`pad_lights`); ``lights``: N lights; ``n_points`` P;
-    ``shadow``: None, or [P, K] visibility s_i in [0, 1] of the first K ≤ N lights (the others 1);
-    ``light_chunk`` (static) lights per scan step (capped at N; None: :func:`default_light_chunk`),
-    the peak intermediate being [P, light_chunk, C]; ``per_light``: None, or a pytree of arrays [N, ...]
-    cut into the same chunks (zeros for the padding lights) and passed to ``term`` as its second
-    argument; ``channels`` (static) C. The chunk body is rematerialised under reverse mode
-    (``jax.checkpoint``). Returns [P, C].
-    """
-    n_lights = lights.count
-    if n_lights == 0:
-        return jnp.zeros((n_points, channels), jnp.float32)
-    chunk = min(light_chunk or default_light_chunk(), n_lights)
-    n_chunks = -(-n_lights // chunk)
-    padded = pad_lights(lights, count=n_chunks * chunk - n_lights)
-    chunked = jax.tree_util.tree_map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), padded)
-    if per_light is not None:
-        pad = lambda x: jnp.pad(x, [(0, n_chunks * chunk - n_lights)] + [(0, 0)] * (x.ndim - 1))
-        per_light = jax.tree_util.tree_map(lambda x: pad(x).reshape((n_chunks, chunk) + x.shape[1:]), per_light)
-    if shadow is not None:
-        shadow = _with_unshadowed_column(shadow, n_points)
-        n_shadowed = shadow.shape[1] - 1
-
-    @jax.checkpoint
-    def step(total, xs):
-        chunk_lights, first, chunk_values = xs
-        values = term(chunk_lights) if per_light is None else term(chunk_lights, chunk_values)
-        if shadow is not None:
-            values = values * jnp.take(shadow, jnp.minimum(first + jnp.arange(chunk), n_shadowed), axis=1)[..., None]
-        return total + jnp.sum(values, axis=1), None
-
-    starts = jnp.arange(n_chunks, dtype=jnp.int32) * chunk
-    total, _ = jax.lax.scan(step, jnp.zeros((n_points, channels), jnp.float32), (chunked, starts, per_light))
-    return total
 
 
 def resolve_light_loop(*, light_loop: str, applies: bool, requires: str, caller: str) -> str:
@@ -178,8 +80,6 @@ def accumulate_lights(points, normals, views, base_color, roughness, metallic, l
     """
     points = jnp.asarray(points, jnp.float32)
     if _surface_light_loop(light_loop, shadow, distribution, "accumulate_lights") == "kernel" and lights.count > 0:
-        from gpupro.shading.light_kernel import fused_accumulate_lights  # it builds on this module
-
         terms = view_terms(normals, views, base_color=base_color, roughness=roughness, metallic=metallic,
                            distribution=distribution)
         return fused_accumulate_lights(points, terms, lights, interpret=jax.default_backend() != "gpu")
@@ -263,7 +163,7 @@ def _with_unshadowed(shadow, n_groups: int, n_per_group: int):
     if shadow is None:
         return None, 0
     n_shadowed = shadow.shape[-1]
-    flat = _with_unshadowed_column(shadow.reshape(n_groups * n_per_group, n_shadowed), n_groups * n_per_group)
+    flat = with_unshadowed_column(shadow.reshape(n_groups * n_per_group, n_shadowed), n_groups * n_per_group)
     return flat.reshape(n_groups, n_per_group, n_shadowed + 1), n_shadowed
 
 
@@ -357,8 +257,6 @@ def _kernel_surface(surface):
 def _kernel_light_lists(surface, lights: Lights, lists, rows):
     """:func:`accumulate_light_lists` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
     shadows; interpreted off GPUs)."""
-    from gpupro.shading.light_kernel import light_list_sums  # it builds on this module
-
     n_groups, n_per_group = surface[0].shape[:2]
     radiance, reached = light_list_sums(*_kernel_surface(surface), lights, lists, jnp.repeat(rows, n_per_group),
                                         interpret=jax.default_backend() != "gpu")
@@ -391,32 +289,6 @@ def _light_lists_backward(distribution, chunk, light_loop, saved, cotangent):
 
 
 _light_lists.defvjp(_light_lists_forward, _light_lists_backward)
-
-
-class GroupTest(typing.NamedTuple):
-    """A conservative test of each of N lights against each of G groups of points (e.g. screen tiles),
-    written once on broadcastable arrays, so that the XLA loop (every group against every light at once,
-    [G, N]) and the kernel of :mod:`gpupro.shading.light_kernel` (one group against one step's lights)
-    make the same comparisons on the same values.
-
-    ``groups`` G; ``group_arrays``: float32 [G, S] values per group (S a power of two, as Triton's blocks
-    must be; the kernel reads a group's S values whole); ``light_arrays``: float32 [N] values per light;
-    ``passes_of(group_values, group)``: from the group arrays' values [..., S] and the group index (int32,
-    shaped as those values without their S axis, kept as size 1: [G, 1] here, a scalar in the kernel) a
-    function of the light arrays' values → bool, True where the light may reach a point of the group.
-    Reductions over S keep their axis (``keepdims``), so that [G, 1] meets [1, N] here and [1] meets a
-    kernel step's [1, L].
-    """
-
-    groups: int
-    group_arrays: list
-    light_arrays: list
-    passes_of: typing.Callable
-
-    def mask(self):
-        """bool [G, N]: which lights pass each group's test."""
-        passes = self.passes_of(list(self.group_arrays), jnp.arange(self.groups, dtype=jnp.int32)[:, None])
-        return passes([jnp.asarray(a)[None, :] for a in self.light_arrays])
 
 
 def accumulate_culled_lights(points, normals, views, base_color, roughness, metallic, lights: Lights, test: GroupTest,
@@ -492,8 +364,6 @@ def _masked_reached(points, lights: Lights, mask, chunk: int):
 def _kernel_culled(surface, lights: Lights, group_arrays, light_arrays, groups: int, passes_of, chunk: int):
     """:func:`accumulate_culled_lights` through the kernel of :mod:`gpupro.shading.light_kernel` (GGX, no
     shadows; interpreted off GPUs); reverse mode through the scan path."""
-    from gpupro.shading.light_kernel import culled_light_sums  # it builds on this module
-
     n_groups, n_per_group = surface[0].shape[:2]
     radiance, reached, evaluated = culled_light_sums(*_kernel_surface(surface), lights,
                                                      GroupTest(groups, group_arrays, light_arrays, passes_of),
@@ -571,7 +441,7 @@ def shade_surfaces(coverage, position, normal, base_color, roughness, metallic, 
 
     ``coverage`` [H, W]; ``position``, ``normal``, ``base_color``, ``emission`` [H, W, 3];
     ``roughness``, ``metallic`` [H, W]; ``shadow`` None or [H, W, K]; other arguments and the result
-    ``(hdr [H, W, 3], counters)`` as in :func:`gpupro.techniques.lights.deferred.shade_deferred`. Arguments are not checked.
+    ``(hdr [H, W, 3], counters)`` as in :func:`gpupro.shading.deferred.shade_deferred`. Arguments are not checked.
     """
     height, width = jnp.shape(coverage)
 

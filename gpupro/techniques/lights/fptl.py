@@ -47,16 +47,16 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from gpupro.raster.gbuffer import SURFACE
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import CAPSULE, POINT, SPOT, Lights
+from gpupro.shading.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.shading.light_kernel import tile_list_hits
-from gpupro.shading.light_loop import default_light_chunk, light_reaches
+from gpupro.shading.light_loop import light_reaches
+from gpupro.shading.light_terms import default_light_chunk
+from gpupro.shading.tiles import (TILED_CAPACITIES, TILED_COUNTERS, cull_lights, list_counters, shade_light_lists,
+                                  to_tiles)
 from gpupro.technique import Counter, Option, Technique, integer, register
-from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
-from gpupro.techniques.lights.tiled import (
-    TILED_CAPACITIES, TILED_COUNTERS, cull_lights, list_counters, shade_light_lists, to_tiles,
-)
-from gpupro.techniques.raster.gbuffer import SURFACE
 
 LIGHT_TYPES = ("point", "spot", "capsule", "other")
 """The order of the types in a sorted list (ranks 0, 1, 2, 3; "other": directional lights)."""
@@ -157,7 +157,7 @@ def prune_and_sort(coarse_lists, lights: Lights, position, coverage, *, tile: in
 def shade_fptl(surface: dict, view_depth, lights: Lights, camera: Camera, *, ambient, background, shadow=None,
                distribution: str, light_chunk: int | None, tile: int, tile_capacity: int):
     """FPTL shading of per-pixel surfaces (``surface`` and arguments as in
-    :func:`gpupro.techniques.lights.tiled.shade_tiled`, without ``depth_bounds``: always on).
+    :func:`gpupro.shading.tiles.shade_tiled`, without ``depth_bounds``: always on).
     Returns ``(hdr float32 [H, W, 3], counters)`` (module docstring)."""
     lists, type_counts, coarse, counts = build_light_lists(
         lights, camera, surface["position"], view_depth, surface["coverage"], tile=tile,

@@ -35,7 +35,7 @@ array test (it never removes a light that reaches a covered sample), with its co
 2. occlusion against a hierarchical max-depth buffer (the chapter's CPU occlusion culling "similar to
    the hierarchical z-buffer", Greene et al. 1993): Z_0 = the view depth of covered pixels, +∞ at empty
    pixels (sky never occludes); Z_{k+1} = max over 2 × 2 texels of Z_k. Light i's pixel rectangle
-   (the projected bounding cube of its bounding sphere, :func:`gpupro.techniques.lights.tiled.screen_bounds`)
+   (the projected bounding cube of its bounding sphere, :func:`gpupro.shading.tiles.screen_bounds`)
    spans s pixels on its longer side; at level k = ⌈log₂ s⌉ it lies in at most 2 × 2 texels, whose
    maximum z_max bounds every sample depth in the rectangle. With the light's nearest view depth
    d_min,i = −h_i(+z) (view space, the camera looking down −z), the light is culled when
@@ -102,23 +102,19 @@ import numpy as np
 from jax.scipy.ndimage import map_coordinates
 
 from gpupro.numerics import dot3, einsum
+from gpupro.raster.gbuffer import SURFACE
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import DIRECTIONAL, SPOT, Lights
-from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_phong
 from gpupro.scene.procedural import SECTOR_LAYOUTS
 from gpupro.scene.sectors import Sectors, make_sectors, rects_overlap, sector_box_arrays, sector_rects
+from gpupro.shading.brdfs import DIELECTRIC_F0, beckmann_to_phong_power, blinn_phong
+from gpupro.shading.deferred import DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
 from gpupro.shading.light_bounds import SLACK, box_meets_light, light_spheres, transform_lights
 from gpupro.shading.light_falloff import incident_light, representative_points
-from gpupro.shading.light_loop import (
-    check_shading_inputs, compose_radiance, default_light_chunk, light_radiance, light_reaches, surface_terms,
-    view_directions,
-)
+from gpupro.shading.light_loop import check_shading_inputs, compose_radiance, light_reaches, view_directions
+from gpupro.shading.light_terms import default_light_chunk, light_radiance, surface_terms
+from gpupro.shading.tiles import fill_light_lists, screen_bounds
 from gpupro.technique import Capacity, Check, Counter, Option, Technique, integer, number, one_of, register
-from gpupro.techniques.lights.deferred import (
-    DEFERRED_INPUTS, HDR, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS, SHADOW,
-)
-from gpupro.techniques.lights.tiled import fill_light_lists, screen_bounds
-from gpupro.techniques.raster.gbuffer import SURFACE
 
 MATERIAL_MODELS = ("analytic", "lut")
 """``analytic``: the shared metallic-roughness BRDF (equals brute force); ``lut``: the chapter's table."""

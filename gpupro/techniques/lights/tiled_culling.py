@@ -45,7 +45,7 @@ t × t pixels (T = ⌈W/t⌉ · ⌈H/t⌉ tiles: 120 × 68 at 1920 × 1080 with 
    the unpartitioned one (the cone tests on bounding spheres are not monotone in the volume), and the
    exact capsule–box search, the costliest test per pair, runs once per tile rather than three times.
    Every comparison is widened by ``SLACK`` so boundary samples survive rounding.
-4. Lists: count → scan → fill (:func:`gpupro.techniques.lights.tiled.fill_light_lists`) into a fixed
+4. Lists: count → scan → fill (:func:`gpupro.shading.tiles.fill_light_lists`) into a fixed
    [T, P, C] array, C = min(``tile_capacity``, N) (the chapter: 256 per tile); the excess is dropped and
    counted (``tile_list_overflow``), and the entry points grow C to ``max_lights_per_tile``.
 5. Shading: each pixel evaluates the list of its tile and partition with the per-light arithmetic of
@@ -84,20 +84,15 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.numerics import dot3, einsum
+from gpupro.raster.gbuffer import SURFACE
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
-from gpupro.shading.light_bounds import (
-    SLACK, box_meets_light, light_spheres, sphere_meets_cones, sphere_meets_light, transform_lights,
-)
+from gpupro.shading.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW, forward_twin
+from gpupro.shading.light_bounds import (SLACK, box_meets_light, light_spheres, sphere_meets_cones, sphere_meets_light,
+                                         transform_lights)
+from gpupro.shading.tiles import (LIGHT_TILE_TESTS, TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles,
+                                  shade_light_lists, tile_grid, to_tiles)
 from gpupro.technique import Check, Counter, Option, Technique, integer, one_of, register
-from gpupro.techniques.lights.deferred import DEFERRED_INPUTS, HDR, SHADING_OPTIONS, SHADING_PARAMS, SHADOW
-from gpupro.techniques.lights.forward import forward_of
-from gpupro.techniques.lights.tiled import (
-    LIGHT_TILE_TESTS, TILED_CAPACITIES, TILED_COUNTERS, fill_light_lists, from_tiles, shade_light_lists, tile_grid,
-    to_tiles,
-)
-from gpupro.techniques.raster.gbuffer import SURFACE
-from gpupro.techniques.raster.raster import FRAGMENTS
 
 LIGHT_BUFFERS = ("compact", "full")
 DEPTH_PARTITIONS = ("none", "half_z", "modified_half_z")
@@ -334,9 +329,9 @@ def shade_culled(surface: dict, view_depth, culled: CulledTiles, lights: Lights,
                  background, shadow=None, distribution: str, light_chunk: int | None, tile: int):
     """Step 5: each pixel shaded with its tile partition's list.
 
-    ``surface``: the G-buffer entries of :data:`gpupro.techniques.lights.deferred.DEFERRED_INPUTS`;
+    ``surface``: the G-buffer entries of :data:`gpupro.shading.deferred.DEFERRED_INPUTS`;
     ``view_depth`` [H, W]; ``culled`` from :func:`cull_tiles` with the same ``tile``; other arguments
-    as in :func:`gpupro.techniques.lights.tiled.shade_light_lists`. Returns ``(hdr [H, W, 3], reached
+    as in :func:`gpupro.shading.tiles.shade_light_lists`. Returns ``(hdr [H, W, 3], reached
     float32 [H, W], evaluated int32 [H, W])``: the listed lights reaching each pixel, and the lights it
     evaluates.
     """
@@ -385,7 +380,7 @@ def shade_tiled_culling(surface: dict, view_depth, lights: Lights, camera: Camer
                         shadow=None, distribution: str, light_chunk: int | None, tile: int, tile_capacity: int,
                         light_buffer: str, depth_partition: str, bounds: str, depth_reduction: str):
     """Compute-based tiled culling then shading of per-pixel surfaces (``surface``, ``view_depth`` and
-    the shading arguments as in :func:`gpupro.techniques.lights.tiled.shade_tiled`; the culling
+    the shading arguments as in :func:`gpupro.shading.tiles.shade_tiled`; the culling
     options as in :func:`cull_tiles`). Returns ``(hdr float32 [H, W, 3], counters)``."""
     culled = cull_tiles(lights, camera, view_depth, surface["coverage"], tile=tile, tile_capacity=tile_capacity,
                         light_buffer=light_buffer, depth_partition=depth_partition, bounds=bounds,
@@ -407,7 +402,6 @@ def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, ti
     return {"hdr": hdr}, counters
 
 
-apply_forward = forward_of(apply_deferred, "Forward+ shading of the rasterizer's fragments → ``hdr`` [H, W, 3].")
 
 
 POWER_OF_TWO = Check(lambda v: integer(2).test(v) and v & (v - 1) == 0, "a power of two >= 2")
@@ -437,7 +431,7 @@ NOTES = ("Missing from GPU Pro 6 VI.1: the single-kernel tiled deferred that sha
          "resolution.")
 EXAMPLE = {"tile": 8}
 
-register(Technique(
+TILED_CULLING = register(Technique(
     id="tiled_culling",
     title="Compute-based tiled culling, tiled deferred: per-tile lists from frusta or AABBs, with Half Z",
     source="GPU Pro 6 VI.1 (J. Stewart, Compute-Based Tiled Culling): §1.3 Listings 1.1–1.3, §1.4.1–1.4.4",
@@ -455,20 +449,10 @@ register(Technique(
     notes=NOTES,
 ))
 
-register(Technique(
+register(forward_twin(
+    TILED_CULLING,
     id="tiled_culling_forward",
     title="Compute-based tiled culling, Forward+: the per-tile lists read while shading fragments",
     source="GPU Pro 6 VI.1 (J. Stewart, Compute-Based Tiled Culling): §1.3.3 Forward+, §1.4",
-    family="lights",
-    status="partial",
-    apply=apply_forward,
-    inputs=FRAGMENTS + (SHADOW,),
-    outputs=(HDR,),
-    options=OPTIONS,
-    params=SHADING_PARAMS,
-    capacities=TILED_CAPACITIES,
-    counters=COUNTERS,
-    reference="deferred",
-    example_options=EXAMPLE,
     notes=NOTES + " Forward+ here shades opaque fragments only, with depth bounds from their view depths (a depth pre-pass).",
 ))

@@ -42,7 +42,7 @@ light at every sample):
   K layers: each sample keyed by its own (tile, depth slice, normal bin), the occupied clusters found,
   bounded and assigned lights as in clustered shading of opaque samples.
 - ``light_linked_list`` (GPU Pro 6 III.1): the lists built on the *opaque* depth
-  (:func:`gpupro.techniques.lights.light_linked_list.build_light_linked_list`), walked by every
+  (:func:`gpupro.shading.light_linked_list.build_light_linked_list`), walked by every
   translucent sample of its pixel with the depth-bounds test at its own view depth.
 
 Counters as in the family, over the translucent fragments shaded (``lighting_computations``,
@@ -55,20 +55,18 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from gpupro.raster.gbuffer import LAYERS, SURFACE
 from gpupro.scene.camera import Camera
 from gpupro.scene.lights import Lights
+from gpupro.shading.clusters import CLUSTERED_CAPACITIES, CLUSTERED_COUNTERS, CLUSTERED_OPTIONS, shade_clustered
+from gpupro.shading.deferred import LIGHT_LOOP_OPTION, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS
+from gpupro.shading.light_linked_list import (LLL_CAPACITIES, LLL_COUNTERS, LLL_OPTIONS, build_light_linked_list,
+                                              downsample_max_depth, shade_image_samples)
 from gpupro.shading.light_lists import kept_lengths
 from gpupro.shading.light_loop import shade_surfaces
+from gpupro.shading.tiles import (LIST_MEMORY_CAPACITY, TILED_CAPACITIES, TILED_COUNTERS, TILED_OPTIONS, list_counters,
+                                  list_memory_counters, shade_light_lists, tile_grid, tile_light_lists)
 from gpupro.technique import Buffer, Counter, Option, Technique, one_of, register
-from gpupro.techniques.lights.clustered import CLUSTERED_CAPACITIES, CLUSTERED_COUNTERS, CLUSTERED_OPTIONS, shade_clustered
-from gpupro.techniques.lights.deferred import LIGHT_LOOP_OPTION, SHADING_COUNTERS, SHADING_OPTIONS, SHADING_PARAMS
-from gpupro.techniques.lights.light_linked_list import (LLL_CAPACITIES, LLL_COUNTERS, LLL_OPTIONS, build_light_linked_list,
-                                                        downsample_max_depth, shade_image_samples)
-from gpupro.techniques.lights.tiled import (LIST_MEMORY_CAPACITY, TILED_CAPACITIES, TILED_COUNTERS,
-                                            TILED_OPTIONS, list_counters, list_memory_counters, shade_light_lists,
-                                            tile_grid, tile_light_lists)
-from gpupro.techniques.raster.gbuffer import SURFACE
-from gpupro.techniques.raster.translucent_layers import LAYERS
 
 SHADED = ("coverage", "position", "normal", "base_color", "roughness", "metallic", "emission", "opacity")
 """The layer entries this pass reads (buffers ``translucent_<key>`` [K, H, W(, C)])."""
@@ -151,7 +149,7 @@ def shade_layers_tiled(layers: dict, opaque_depth, opaque_coverage, lights: Ligh
 
 def shade_layers_clustered(layers: dict, lights: Lights, camera: Camera, *, ambient, **options):
     """Clustered forward shading of the translucent ``layers`` ([K, H, W(, C)]): clusters of the samples
-    of all K layers by their own keys (:func:`gpupro.techniques.lights.clustered.shade_clustered` with
+    of all K layers by their own keys (:func:`gpupro.shading.clusters.shade_clustered` with
     ``layers`` = K); ``options`` the clustered ones (static). Returns ``(radiance [K, H, W, 3],
     counters)`` (those of ``clustered_deferred``, over the translucent samples)."""
     n_layers, height = jnp.shape(layers["coverage"])[:2]

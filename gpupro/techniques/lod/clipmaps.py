@@ -124,9 +124,9 @@ from gpupro.media.rays import pixel_rays
 from gpupro.numerics import dot3
 from gpupro.raster.surface import bend_towards_viewer, normalize
 from gpupro.scene.mesh import Mesh
-from gpupro.techniques.lights.deferred import shade_deferred
-from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, Param, Technique,
-                              check_finite_params, integer, number, register, validate_options)
+from gpupro.shading.deferred import shade_deferred
+from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, Param, Technique, check_finite_params,
+                              integer, number, register, validate_options)
 
 FOUR_POINT = (-1.0 / 16.0, 9.0 / 16.0, 9.0 / 16.0, -1.0 / 16.0)
 """Kobbelt's four-point interpolatory weights on the coarse samples I − 1 … I + 2 of an odd fine sample."""

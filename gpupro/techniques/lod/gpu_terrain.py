@@ -131,7 +131,7 @@ from gpupro.media.rays import pixel_rays
 from gpupro.raster.surface import bend_towards_viewer, normalize
 from gpupro.scene.camera import to_clip
 from gpupro.scene.mesh import Mesh
-from gpupro.techniques.lights.deferred import shade_deferred
+from gpupro.shading.deferred import shade_deferred
 from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique,
                               check_finite_params, integer, number, one_of, register, validate_options)
 

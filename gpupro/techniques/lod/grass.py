@@ -106,11 +106,11 @@ from gpupro.numerics import dot3
 from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh, concatenate_meshes
 from gpupro.scene.procedural import primitive_mesh
+from gpupro.shading.deferred import shade_deferred
 from gpupro.sort import radix_sort
 from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique,
                               check_finite_params, integer, number, optional, outside_trace, register,
                               validate_options)
-from gpupro.techniques.lights.deferred import shade_deferred
 
 BLADE_TYPES = (
     # probability, length range (m), lean θ_0 at the root and θ_1 at the tip (radians)

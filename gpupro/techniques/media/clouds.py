@@ -152,11 +152,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.media import cloud_field, henyey_greenstein, pixel_rays, ray_box, trilinear
+from gpupro.media.cloud_field import (CLOUD_INPUTS, CLOUD_PARAMS, FIELD_EXAMPLE, FIELD_KEYS, FIELD_OPTIONS,
+                                      LATTICE_OPTION)
 from gpupro.numerics import dot3
-from gpupro.technique import (Buffer, Capacity, Check, Counter, Option, Param, Technique, integer, number, one_of,
+from gpupro.shading.tiles import fill_light_lists, from_tiles, screen_bounds, tile_grid, tile_overlaps, to_tiles
+from gpupro.technique import (Buffer, Capacity, Check, Counter, Option, Technique, integer, number, one_of,
                               outside_trace, register)
-from gpupro.techniques.lights.tiled import (fill_light_lists, from_tiles, screen_bounds, tile_grid, tile_overlaps,
-                                           to_tiles)
 
 _BIG = 1e30  # "no cloud" distance: the chapter's +FLT_MAX, kept finite
 _TINY = 1e-20
@@ -558,10 +559,6 @@ class ParticleSet(typing.NamedTuple):
     slots: int
 
 
-FIELD_KEYS = ("grid_centre", "altitude", "cell_size", "rings", "ring_dimension", "cell_layers", "cloud_coverage", "cloud_coverage_scale",
-              "noise_scale", "altitude_falloff", "particle_radius", "position_jitter", "radius_jitter", "seed")
-
-
 @functools.lru_cache(maxsize=8)
 def _cached_particles(key, lattice_resolution, chunk):
     return outside_trace(_particle_set, dict(key), lattice_resolution, chunk)
@@ -886,7 +883,7 @@ def render_particles(params, luts, arrays, ray, sun, visible_count, *, blending,
 def bin_particles(centres, radii, visible, camera, *, bin_tile, tile_particle_capacity):
     """Screen-tile lists of the sorted particles (count → scan → fill). Each ``visible`` [P] sphere
     (``centres`` [P, 3], ``radii`` [P]) gets the conservative pixel rectangle of its projection for
-    ``camera`` (:func:`gpupro.techniques.lights.tiled.screen_bounds` with ``from_eye``: the pixel rays start
+    ``camera`` (:func:`gpupro.shading.tiles.screen_bounds` with ``from_eye``: the pixel rays start
     at the eye, so a sphere reaching nearer than the near plane gets the whole screen) and is listed in every tile of ``bin_tile``² pixels the rectangle overlaps. Returns (lists int32
     [T, L], counts int32 [T]): per tile (row-major) the particle indices in ascending order, i.e. back to
     front, −1 past the end, L = min(``tile_particle_capacity``, P); counts before truncation (entries past
@@ -1077,41 +1074,13 @@ def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, rin
 # Specification
 
 
-def _dims_check(count, lo=1):
-    return Check(lambda v: (d := cloud_field.dims(v, count)) is not None and min(d) >= lo and not isinstance(v, int),
-                 f"{count} integers >= {lo}: a list, or a string like '{'x'.join(['16'] * count)}'")
-
-
-CENTRE = Check(lambda v: cloud_field.centre_xz(v) is not None, "two finite numbers (x, z), or a string 'x, z'")
-
-
-MULTIPLE_OF_4 = Check(lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 4 and v % 4 == 0,
-                      "an integer >= 4, a multiple of 4")
 POWER_OF_2 = Check(lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 2 and v & (v - 1) == 0,
                    "a power of two >= 2")
 
-OPTIONS = (
-    Option("grid_centre", (0.0, 0.0), CENTRE, "(x, z) of the cell grid's centre (world units; the chapter's camera)"),
-    Option("altitude", 1500.0, number(), "mid altitude y₀ of the cloud layer (world units)"),
-    Option("cell_size", 100.0, number(0.0, strict_lo=True), "edge s₀ of the innermost ring's cells and lattice voxels "
-                                                            "(world units)"),
-    Option("rings", 4, integer(1, 10), "rings of the cell grid (chapter: 4–5); each outer one doubles size and "
-                                       "spacing"),
-    Option("ring_dimension", 120, MULTIPLE_OF_4, "cells D per ring side (chapter: 120–216)"),
-    Option("cell_layers", 3, integer(1), "lattice layers L of the innermost ring (chapter: 3–8); thickness L · s₀"),
-    Option("cloud_coverage", 0.5, number(0.0, 0.999), "threshold θ of the 2D coverage noise (higher: fewer clouds)"),
-    Option("cloud_coverage_scale", 2000.0, number(0.0, strict_lo=True), "feature size of the 2D coverage noise (world "
-                                                                  "units)"),
-    Option("noise_scale", 400.0, number(0.0, strict_lo=True), "feature size of the 3D density noise (world units)"),
-    Option("altitude_falloff", 1.1, number(0.0), "linear fall of the density with relative altitude (chapter: 1.1)"),
-    Option("particle_radius", 0.8, number(0.0, strict_lo=True), "particle radius, a fraction of its ring's voxel edge"),
-    Option("position_jitter", 0.5, number(0.0, 1.0), "random displacement of particles, a fraction of the voxel edge"),
-    Option("radius_jitter", 0.2, number(0.0, 0.99), "random relative change of the particle radii"),
-    Option("seed", 0, integer(0), "seed of the noise and the jitter"),
-    Option("lattice_resolution", (64, 8, 64), _dims_check(3), "cells of the density lattice marched towards the sun"),
+OPTIONS = FIELD_OPTIONS + (LATTICE_OPTION,) + (
     Option("light_steps", 16, integer(1), "steps of the light march (chapter: 16)"),
-    Option("optical_depth_lut", (32, 16, 32, 16), _dims_check(4, 2), "optical-depth LUT size (N_φs, N_θs, N_φv, N_θv)"),
-    Option("scattering_lut", (32, 64, 16), _dims_check(3, 2), "scattering LUT size (N_θs, N_φv, N_θv) on the surface"),
+    Option("optical_depth_lut", (32, 16, 32, 16), cloud_field.dims_check(4, 2), "optical-depth LUT size (N_φs, N_θs, N_φv, N_θv)"),
+    Option("scattering_lut", (32, 64, 16), cloud_field.dims_check(3, 2), "scattering LUT size (N_θs, N_φv, N_θv) on the surface"),
     Option("scattering_radii", 8, integer(2), "radial slices N_r of the volume tables of the precompute"),
     Option("scattering_orders", 18, integer(2, 64), "scattering orders computed (chapter: up to 18)"),
     Option("integration_steps", 64, integer(1), "integration steps per ray in the precompute"),
@@ -1141,29 +1110,6 @@ OPTIONS = (
     Option("sort_block", 128, POWER_OF_2, "keys per bitonic block of the sort (chapter: 128)"),
 )
 
-PARAMS = (
-    Param("extinction", 0.07, "1/world unit", "extinction = scattering coefficient β (chapter: 0.07 per metre)",
-          lower=0.0),
-    Param("density_scale", 1.0, "1", "scale k of every particle's density", lower=0.0),
-    Param("phase_g", 0.8, "1", "runtime HG g of the single-scattering term (chapter: 0.8)", lower=-0.99, upper=0.99),
-    Param("sun_direction", (0.3, 0.6, -0.75), "1", "direction towards the sun, world axes (normalised here)"),
-    Param("sun_color", (1.0, 1.0, 1.0), "W/m²", "irradiance E_sun of the sunlight reaching the clouds (RGB)",
-          lower=0.0),
-    Param("ambient_color", (0.25, 0.3, 0.4), "W/(m² sr)", "ambient sky radiance L_amb (RGB)", lower=0.0),
-    Param("multiple_mass_scale", 0.25, "1", "scale μ of the sun-attenuating mass for multiple scattering (chapter: "
-                                           "0.25)", lower=0.0),
-    Param("ambient_floor", 0.3, "1", "lower clamp f of the ambient strength (chapter: 0.3)", lower=0.0, upper=1.0),
-    Param("albedo", 1.0, "1", "single-scattering albedo α = σ_s/σ_t scaling the sunlit terms (chapter: 1; the "
-                              "tables are built for 1, so this is a fitting knob, not αⁿ per order)",
-          lower=0.0, upper=1.0),
-    Param("multiple_scale", 1.0, "1", "scale s of the multiple-scattering term (chapter's Listing 4.5: 1; its "
-                                      "demo code: π)", lower=0.0),
-)
-
-INPUTS = (Buffer("hdr", "linear radiance of the scene behind the clouds (surfaces, or sky where empty)", "RGB"),
-          Buffer("view_depth", "distance along the viewing axis (world units), 0 where empty", "Z"),
-          Buffer("coverage", "1 where a triangle is visible, 0 where empty", "Y"))
-
 register(Technique(
     id="clouds",
     title="Physically based clouds from precomputed scattering (particles, LUTs, volume-aware blending)",
@@ -1171,11 +1117,11 @@ register(Technique(
     family="media",
     status="implemented",
     apply=apply,
-    inputs=INPUTS,
+    inputs=CLOUD_INPUTS,
     outputs=(Buffer("hdr_clouds", "linear radiance: the clouds composited over the scene, depth-tested", "RGB"),
              Buffer("cloud_transmittance", "transmittance of the clouds in front of the scene (1: no cloud)", "Y")),
     options=OPTIONS,
-    params=PARAMS,
+    params=CLOUD_PARAMS,
     capacities=(Capacity("hit_capacity", "hit_overflow", "intersections shaded per step of the render loop",
                          needed="hit_capacity_needed"),
                 Capacity("tile_particle_capacity", "tile_list_overflow", "particles listed per screen tile",
@@ -1200,9 +1146,7 @@ register(Technique(
               Counter("light_march_steps", "lattice samples of the sun-attenuation march (2 per particle per step)"),
               Counter("optical_depth_lut_texels", "texels of the optical-depth LUT"),
               Counter("scattering_lut_texels", "texels of the multiple-scattering LUT")),
-    example_options={"grid_centre": (0.0, 0.0), "altitude": -24.0, "cell_size": 20.0, "rings": 2, "ring_dimension": 4,
-                     "cell_layers": 2, "cloud_coverage": 0.2, "cloud_coverage_scale": 60.0, "noise_scale": 20.0,
-                     "lattice_resolution": (12, 4, 12), "optical_depth_lut": (8, 4, 8, 4), "scattering_lut": (8, 16, 6),
+    example_options={**FIELD_EXAMPLE, "lattice_resolution": (12, 4, 12), "optical_depth_lut": (8, 4, 8, 4), "scattering_lut": (8, 16, 6),
                      "scattering_radii": 8, "scattering_orders": 3, "integration_steps": 24, "lut_radius": 0.5,
                      "lut_extinction": 4.0, "particle_chunk": 8, "sort_block": 8},
     notes="No reference= is declared: the LUTs are the model (a twin with direct integration in place of the "

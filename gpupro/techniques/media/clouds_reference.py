@@ -50,14 +50,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.media import cloud_field, pixel_rays, volpath
+from gpupro.media.cloud_field import (CLOUD_INPUTS, CLOUD_PARAMS, FIELD_EXAMPLE, FIELD_KEYS, FIELD_OPTIONS,
+                                      LATTICE_OPTION)
 from gpupro.numerics import dot3
-from gpupro.technique import (TECHNIQUES, Buffer, Counter, Option, Param, Technique, integer, one_of, outside_trace,
-                              register)
-from gpupro.techniques.media import clouds
-
-FIELD_OPTIONS = tuple(o for o in clouds.OPTIONS if o.name in clouds.FIELD_KEYS)
-"""The cloud-field options of the real-time ``clouds`` technique: same names, defaults and checks."""
-
+from gpupro.technique import Buffer, Counter, Option, Param, Technique, integer, one_of, outside_trace, register
 
 def _build_grid(field, grid_resolution):
     particles = cloud_field.cloud_particles(**dict(field))
@@ -81,9 +77,9 @@ def cloud_grid(*, grid_resolution, **field_options):
     ``(grid, lo, hi, particles)``, ``grid`` [X, Y, Z] the normalised density at the cell centres, ``lo``,
     ``hi`` [3] the world corners (numpy arrays), ``particles`` the number of valid particles. Built once
     per option set, outside any trace (an empty field gives zeros in the unit box)."""
-    unknown = set(field_options) - set(clouds.FIELD_KEYS)
+    unknown = set(field_options) - set(FIELD_KEYS)
     if unknown:
-        raise ValueError(f"{sorted(unknown)}: not cloud-field options (those are: {', '.join(clouds.FIELD_KEYS)})")
+        raise ValueError(f"{sorted(unknown)}: not cloud-field options (those are: {', '.join(FIELD_KEYS)})")
     values = {o.name: field_options.get(o.name, o.default) for o in FIELD_OPTIONS}
     values["grid_centre"] = cloud_field.centre_xz(values["grid_centre"])
     return _cached_grid(tuple(values.items()), cloud_field.dims(grid_resolution, 3))
@@ -96,7 +92,7 @@ def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, rin
     """Path-traced clouds over ``hdr`` [H, W, 3], depth-tested against ``view_depth`` [H, W] where
     ``coverage`` [H, W] > 0: ``hdr_clouds`` and ``hdr_clouds_error`` [H, W, 3] (radiance, its standard
     error) and ``cloud_transmittance`` [H, W]."""
-    field = {k: v for k, v in locals().items() if k in clouds.FIELD_KEYS}
+    field = {k: v for k, v in locals().items() if k in FIELD_KEYS}
     grid, lo, hi, count = cloud_grid(grid_resolution=grid_resolution, **field)
     camera = scene.camera
     origins, directions, depth_to_t = pixel_rays(camera)
@@ -114,8 +110,7 @@ def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, rin
             "cloud_transmittance": estimate.transmittance}, counters
 
 
-_CLOUD_PARAMS = {p.name: p for p in clouds.PARAMS}
-_LATTICE = clouds.OPTIONS[[o.name for o in clouds.OPTIONS].index("lattice_resolution")]
+_CLOUD_PARAMS = {p.name: p for p in CLOUD_PARAMS}
 
 register(Technique(
     id="clouds_reference",
@@ -124,13 +119,13 @@ register(Technique(
     family="media",
     status="reference",
     apply=apply,
-    inputs=clouds.INPUTS,
+    inputs=CLOUD_INPUTS,
     outputs=(Buffer("hdr_clouds", "linear radiance: the path-traced clouds over the scene, depth-tested", "RGB"),
              Buffer("hdr_clouds_error", "standard error of each pixel's hdr_clouds (Monte Carlo noise)", "RGB"),
              Buffer("cloud_transmittance", "transmittance of the clouds in front of the scene (1: no cloud), "
                                            "estimated", "Y")),
     options=FIELD_OPTIONS + (
-        Option("grid_resolution", (64, 16, 64), _LATTICE.check,
+        Option("grid_resolution", (64, 16, 64), LATTICE_OPTION.check,
                "cells (X, Y, Z) of the density grid over the particles' box (a cell ≲ half the innermost voxel "
                "edge resolves every particle)"),
         Option("paths_per_pixel", 16, integer(2), "Monte Carlo paths per pixel (at least 2: the error needs two)"),
@@ -156,7 +151,7 @@ register(Technique(
               Counter("paths", "paths traced: pixels × paths_per_pixel"),
               Counter("density_lookups", "trilinear σ_t lookups by delta and ratio tracking, all paths (float32)"),
               Counter("wavefront_steps", "steps of the path wavefront (one lookup per path in flight per step)")),
-    example_options={**{k: v for k, v in TECHNIQUES["clouds"].example_options.items() if k in clouds.FIELD_KEYS},
+    example_options={**FIELD_EXAMPLE,
                      "grid_resolution": (16, 8, 16), "paths_per_pixel": 4, "max_bounces": 8},
     notes="The truth the real-time clouds are measured against (no reference= between them: the LUT model is an "
           "approximation). Secondary rays see only the sun and the constant sky, not the scene's surfaces.",

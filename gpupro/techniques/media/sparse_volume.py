@@ -7,7 +7,7 @@ colour max, inner and outer radii, the displacement cube map), 5.5.3 (light prop
 5.5.4 (eye-view ray march, Listing 5.3), 5.5.5 (metavoxel sort order).
 
 The volume. A cube of edge E (world units) centred at target + ``placement`` · (eye − target), as the other
-media passes (:func:`gpupro.techniques.media.volume_ao.volume_box`), but turned to the light: with l̂ =
+media passes (:func:`gpupro.media.rays.volume_box`), but turned to the light: with l̂ =
 (cos θ sin φ, sin θ, cos θ cos φ) the unit direction towards the directional light (θ = ``light_elevation``,
 φ = ``light_azimuth``), its frame has rows e₂ = −l̂ (down the voxel columns, away from the light), e₀ the unit
 part of x̂ (ẑ where |e₂·x̂| ≥ 0.9) orthogonal to e₂, and e₁ = e₂ × e₀. A world point x has frame coordinates
@@ -26,7 +26,7 @@ towards unit direction ω is
     R_p(ω) = r_p (1 + a n(Q_p ω)),   n ∈ [0, 1],
 
 a = ``displacement``, n the cube map (Fig. 5.8): three octaves of improved Perlin noise
-(:func:`gpupro.techniques.media.volumetric_fog.improved_noise`) at ``noise_frequency`` · ω, sampled at the
+(:func:`gpupro.media.noise.improved_noise`) at ``noise_frequency`` · ω, sampled at the
 (F + 1)³ vertices of a grid over [−1, 1]³ (F = ``cube_map_size``), rescaled to [0, 1], and read at the cube
 surface point ω / max_k |ω_k| by trilinear interpolation (bilinear on each face, continuous across the
 edges, whose vertices the faces share). So the inner radius is r_p and the outer one r_p (1 + a).
@@ -94,10 +94,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.media import pixel_rays, ray_box, trilinear
+from gpupro.media.noise import improved_noise
+from gpupro.media.rays import volume_box
 from gpupro.numerics import dot3
 from gpupro.technique import Buffer, Capacity, Counter, Option, Param, Technique, integer, number, optional, register
-from gpupro.techniques.media.volume_ao import volume_box
-from gpupro.techniques.media.volumetric_fog import improved_noise
 
 NOISE_OCTAVES = 3
 """Octaves of the cube map's noise (amplitudes 1, ½, ¼ at frequencies f, 2f, 4f)."""
@@ -121,7 +121,7 @@ def light_direction(*, light_elevation, light_azimuth):
 def light_frame(camera, *, light_elevation, light_azimuth, placement, box_size):
     """The volume's frame: ``{"rotation": R [3, 3] (rows e₀, e₁, e₂ = −l̂), "centre": [3] world, "edge": E}``
     for the light of :func:`light_direction` (static options) and the placement cube of
-    :func:`gpupro.techniques.media.volume_ao.volume_box` (world units)."""
+    :func:`gpupro.media.rays.volume_box` (world units)."""
     lo, hi = volume_box(camera, placement=placement, box_size=box_size)
     down = -light_direction(light_elevation=light_elevation, light_azimuth=light_azimuth)
     helper = np.array([1.0, 0.0, 0.0]) if abs(down[0]) < 0.9 else np.array([0.0, 0.0, 1.0])

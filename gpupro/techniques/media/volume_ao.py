@@ -75,6 +75,7 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.media import pixel_rays, ray_box, trilinear
+from gpupro.media.rays import volume_box
 from gpupro.numerics import dot3
 from gpupro.technique import Buffer, Counter, Option, Param, Technique, integer, number, one_of, optional, register
 
@@ -242,22 +243,6 @@ def ray_traced_obscurance(o, *, rays, radius, ray_step):
 
     total = jax.lax.fori_loop(0, samples, step, jnp.zeros((n ** 3, rays), jnp.float32))
     return jnp.mean(jnp.exp(total), axis=-1).reshape(n, n, n)
-
-
-def volume_box(camera, *, placement, box_size):
-    """World corners ``(lo, hi)`` [3] of the volume's cube: centred at target + ``placement`` · (eye −
-    target) on the camera's axis (0: the target; negative: beyond it), of edge ``box_size`` (world units; if
-    None, d · tan(fov/2) at the centre's distance d from the eye, half the ortho height for orthographic
-    cameras)."""
-    middle = camera.target + placement * (camera.eye - camera.target)
-    if box_size is not None:
-        edge = jnp.float32(box_size)
-    elif camera.projection == "perspective":
-        offset = middle - camera.eye
-        edge = jnp.sqrt(dot3(offset, offset)) * jnp.tan(0.5 * camera.fov_y)
-    else:
-        edge = 0.5 * camera.ortho_height
-    return middle - 0.5 * edge, middle + 0.5 * edge
 
 
 def render_volume(o, ao, inputs, camera, lo, hi, *, color, ambient, steps):

@@ -88,14 +88,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.media import henyey_greenstein, pixel_rays, trilinear
+from gpupro.media.noise import improved_noise
 from gpupro.numerics import dot3, matmul
 from gpupro.scene.lights import Lights
 from gpupro.shading.light_falloff import incident_light
 from gpupro.shading.light_kernel import block_light_lists, incident_components, list_sums
-from gpupro.shading.light_loop import LIGHT_LOOPS, resolve_light_loop, sum_over_lights
+from gpupro.shading.light_loop import LIGHT_LOOPS, resolve_light_loop
+from gpupro.shading.light_terms import sum_over_lights
+from gpupro.shadows.maps import build_shadow_maps, shadow_factor
 from gpupro.technique import (BOOLEAN, Buffer, Counter, Option, OptionError, Param, Technique, integer, number, one_of,
                               optional, register)
-from gpupro.techniques.shadows.shadow_maps import build_shadow_maps, shadow_factor
 
 SLICE_INTEGRALS = ("chapter", "exact")
 """Per-slice weights of the accumulation: the chapter's Δt (Listing 3.2), or the exact (1 − e^{−τ}) / σ_t."""
@@ -142,37 +144,6 @@ def slice_coordinate(depth, extent, *, depth_exponent: float):
 
 # ----------------------------------------------------------------------------------------------------------
 # Medium
-
-
-def _gradient_table() -> np.ndarray:
-    """Perlin 2002's 16 gradients (the 12 cube edge midpoints, four repeated), from its grad(hash, x, y, z)."""
-    table = []
-    for h in range(16):
-        u = [1, 0, 0] if h < 8 else [0, 1, 0]
-        v = [0, 1, 0] if h < 4 else ([1, 0, 0] if h in (12, 14) else [0, 0, 1])
-        table.append(np.array(u) * (-1 if h & 1 else 1) + np.array(v) * (-1 if h & 2 else 1))
-    return np.array(table, np.float32)
-
-
-_GRADIENTS = _gradient_table()
-
-
-def improved_noise(points, *, noise_seed: int):
-    """Improved Perlin noise (Perlin 2002) at ``points`` [..., 3] (lattice units): Σ over the 8 lattice
-    corners of fade-weighted gradient · offset, fade 6t⁵ − 15t⁴ + 10t³ (C² in the points); gradients
-    from a permutation of 256 drawn with ``noise_seed`` (static). Returns [...] in about [−1, 1]."""
-    permutation = np.random.default_rng(noise_seed).permutation(256)
-    permutation = jnp.asarray(np.concatenate([permutation, permutation]), jnp.int32)
-    gradients = jnp.asarray(_GRADIENTS)
-    points = jnp.asarray(points, jnp.float32)
-    cell = jnp.floor(points)
-    f = points - cell
-    corners = jnp.asarray(np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3))
-    i = (cell.astype(jnp.int32)[..., None, :] + corners) & 255  # [..., 8, 3]; the table repeats past 255
-    h = permutation[permutation[permutation[i[..., 0]] + i[..., 1]] + i[..., 2]]
-    fade = f * f * f * (f * (f * 6.0 - 15.0) + 10.0)
-    weight = jnp.prod(jnp.where(corners > 0, fade[..., None, :], 1.0 - fade[..., None, :]), axis=-1)
-    return jnp.sum(weight * dot3(gradients[h & 15], f[..., None, :] - corners), axis=-1)
 
 
 def extinction(params, points, *, noise_seed: int):
@@ -357,7 +328,7 @@ def froxel_medium(params, scene, jitter, extent, maps=None, *, froxels_x: int, f
     """Per-froxel (s [Y, X, N, 3], σ_t [Y, X, N]) sampled at depth Z((k + ``jitter``) / N) of each slice k.
 
     ``jitter`` ξ scalar in [0, 1); ``extent`` R, the fog range (world units); ``maps``: None or the
-    :class:`gpupro.techniques.shadows.shadow_maps.ShadowMaps` of the first lights. With the light-loop
+    :class:`gpupro.shadows.maps.ShadowMaps` of the first lights. With the light-loop
     kernel and no ``slice_batch``, every froxel at once, in :data:`FROXEL_BLOCK` blocks so that each block
     of the kernel walks only the lights near it; otherwise one slice of Y·X points ``slice_batch`` slices
     at a time (``lax.map``; None: :func:`default_slice_batch`). Static grid and medium options as the

@@ -28,26 +28,11 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from gpupro.raster import rasterize_scene, reference, split_faces
+from gpupro.raster.gbuffer import CULL, FRAGMENTS, fragment_buffers
 from gpupro.raster.rasterize import RESOLVE_METHODS
 from gpupro.raster.setup import SAMPLE_PATTERNS
 from gpupro.scene.camera import to_clip
-from gpupro.technique import BOOLEAN, Buffer, Capacity, Counter, Option, Technique, integer, one_of, optional, register
-
-FRAGMENTS = (
-    Buffer("triangle_id", "index of the visible triangle, -1 where empty (int32; [H, W, S] with samples > 1)", "Y"),
-    Buffer("depth", "window depth in [0, 1], near = 0, 1 where empty", "Z"),
-    Buffer("barycentrics", "perspective-correct barycentrics of the visible triangle", "XYZ"),
-    Buffer("bary_dx", "barycentrics' derivative per pixel step right", "XYZ"),
-    Buffer("bary_dy", "barycentrics' derivative per pixel step down", "XYZ"),
-)
-"""The fragment buffers both rasterizers produce."""
-
-FRAGMENT_NAMES = tuple(b.name for b in FRAGMENTS)
-
-
-def _fragment_buffers(fragments) -> dict:
-    return {name: getattr(fragments, name) for name in FRAGMENT_NAMES}
-
+from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, optional, register
 
 def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch,
                 tail_batch, resolve):
@@ -55,7 +40,7 @@ def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_ca
     fragments = rasterize_scene(scene, samples=samples, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity,
                                 pair_capacity=pair_capacity, chunk_batch=chunk_batch, tail_batch=tail_batch,
                                 resolve=resolve)
-    return _fragment_buffers(fragments), fragments.counters
+    return fragment_buffers(fragments), fragments.counters
 
 
 def apply_reference(params, inputs, scene, *, samples, cull_backfaces):
@@ -64,11 +49,10 @@ def apply_reference(params, inputs, scene, *, samples, cull_backfaces):
     clip = to_clip(scene.mesh.positions, camera.view_projection())
     faces, _, translucent = split_faces(scene.mesh, scene.materials)
     fragments = reference(clip, faces, resolution=camera.resolution, samples=samples, cull_backfaces=cull_backfaces)
-    return _fragment_buffers(fragments), dict(fragments.counters, translucent_triangles=jnp.sum(translucent, dtype=jnp.int32))
+    return fragment_buffers(fragments), dict(fragments.counters, translucent_triangles=jnp.sum(translucent, dtype=jnp.int32))
 
 
 TRANSLUCENT_TRIANGLES = Counter("translucent_triangles", "triangles left out for a material opacity < 1 (drawn by translucent_layers)")
-CULL = Option("cull_backfaces", False, BOOLEAN, "drop triangles that are clockwise in NDC (back-facing)")
 SAMPLES = Option("samples", 1, one_of(*SAMPLE_PATTERNS),
                  "samples per pixel (MSAA at D3D's standard positions); above 1 the fragments are [H, W, S(, 3)] "
                  "and only deferred, forward (their hdr resolved to [H, W, 3]), gbuffer and shadow_maps take them")

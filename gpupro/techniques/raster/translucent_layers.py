@@ -30,7 +30,7 @@ translucent fragment in front of the opaque surface (``layer_overflow``, the occ
 K + 1 rasterizations of the translucent triangles (a ``lax.scan``, compiled once).
 
 Outputs: per layer the surface that shading needs, [K, H, W(, C)], as the G-buffer has it for the
-opaque layer (:func:`gpupro.techniques.raster.gbuffer.gbuffer_from_fragments`), plus the opacity α.
+opaque layer (:func:`gpupro.raster.gbuffer.gbuffer_from_fragments`), plus the opacity α.
 """
 
 from __future__ import annotations
@@ -39,26 +39,9 @@ import jax
 import jax.numpy as jnp
 
 from gpupro.raster import Fragments, rasterize, reference, split_faces
+from gpupro.raster.gbuffer import CULL, FRAGMENTS, LAYER_KEYS, LAYERS, gbuffer_from_fragments
 from gpupro.scene.camera import to_clip
-from gpupro.technique import Buffer, Capacity, Counter, Option, Technique, integer, register
-from gpupro.techniques.raster.gbuffer import gbuffer_from_fragments
-from gpupro.techniques.raster.raster import CULL, FRAGMENTS
-
-LAYER_DOCS = {
-    "coverage": "1 where the layer holds a translucent surface, 0 where empty",
-    "position": "world position",
-    "normal": "interpolated unit normal, facing the camera",
-    "base_color": "linear RGB albedo (material colour × texture)",
-    "roughness": "perceptual roughness in [0, 1]",
-    "metallic": "metalness in [0, 1]",
-    "emission": "emitted radiance (linear RGB)",
-    "opacity": "the material's opacity α in [0, 1), 0 where empty",
-    "triangle_id": "index of the layer's triangle, -1 where empty (int32)",
-    "depth": "window depth of the layer, 1 where empty",
-}
-LAYER_KEYS = tuple(LAYER_DOCS)
-"""Per-layer surface entries, each output as buffer ``translucent_<key>`` [K, H, W(, C)]."""
-
+from gpupro.technique import Capacity, Counter, Option, Technique, integer, register
 
 def peel_layers(clip, faces, opaque_id, opaque_depth, *, layers: int, rasterizer=rasterize, **raster_options):
     """The ``layers`` + 1 nearest translucent fragments of each pixel in front of the opaque ones.
@@ -125,10 +108,6 @@ def apply_reference(params, inputs, scene, *, layer_capacity, cull_backfaces):
     """Depth peeling with the brute-force rasterizer (every translucent triangle at every pixel, each pass)."""
     return _peel_scene(inputs, scene, layer_capacity=layer_capacity, cull_backfaces=cull_backfaces, rasterizer=reference)
 
-
-LAYERS = tuple(Buffer(f"translucent_{key}", f"per layer [K, H, W(, C)], nearest first: {doc}", image=False)
-               for key, doc in LAYER_DOCS.items())
-"""The pass's outputs: per-layer surfaces with a leading layer axis (not images, so saved to .npz)."""
 
 OPAQUE = tuple(b._replace(optional=False) for b in FRAGMENTS if b.name in ("triangle_id", "depth"))
 OPTIONS = (

@@ -3,7 +3,7 @@
 Source: Olsson's thesis (seed), Paper II ("Clustered Deferred and Forward Shading", HPG 2012), sec. 3.2
 (finding unique clusters: sorting, Fig. 5; local sorting; page tables), 3.4 (each sample's cluster
 index), 4.2 (tile sorting) and 4.3 (page tables). Input: the packed int32 cluster key of every sample
-(:func:`gpupro.techniques.lights.clustered.cluster_keys`; :data:`NO_KEY` where nothing is covered), whose
+(:func:`gpupro.shading.clusters.cluster_keys`; :data:`NO_KEY` where nothing is covered), whose
 low digits are the screen tile (i, j) of the sample. Every method finds the same set U of occupied
 clusters (the distinct keys), an index in [0, |U|) for each cluster, written back to its samples, and
 |U|; clusters with an index past the capacity C are dropped (their samples get −1) and counted by the
@@ -36,7 +36,7 @@ they are XLA sorts and scatters (duplicate keys write the same value, so no atom
 single-pass page allocation (2× slower there) is not implemented. The paper computes explicit bounds
 and sample normal cones only with sorting (sec. 3.2: with page tables the many-to-one reduction needs
 colliding atomics); here both are the segment reductions of
-:func:`gpupro.techniques.lights.clustered.explicit_bounds` over the samples' cluster indices, which
+:func:`gpupro.shading.clusters.explicit_bounds` over the samples' cluster indices, which
 every method provides, so ``bounds = "explicit"`` works with page tables too.
 """
 
@@ -45,7 +45,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from gpupro.techniques.lights.tiled import from_tiles, tile_grid, to_tiles
+from gpupro.shading.tiles import from_tiles, tile_grid, to_tiles
 
 NO_KEY = jnp.iinfo(jnp.int32).max
 """The key of uncovered pixels (sorts after every cluster)."""
