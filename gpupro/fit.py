@@ -4,8 +4,9 @@ A fitted quantity is named by a path: ``params.<pass>.<key>`` (a pass parameter,
 ``params.post.exposure``) or ``scene.<field>.<field>`` (e.g. ``scene.lights.color``,
 ``scene.materials.roughness``), optionally restricted to ``indices`` along its first axis. Each step
 renders the frame, takes the loss against the target buffer, and applies an optax update; values are
-then projected onto their ``[lower, upper]`` bounds (projected gradient descent), which keeps
-intensities non-negative and roughness in range without reparameterizing.
+then projected onto their ``[lower, upper]`` bounds (projected gradient descent; a pass parameter's
+also within the range its technique declares), which keeps intensities non-negative and roughness in
+range without reparameterizing.
 
 Losses over the buffer ``x`` and target ``y``: ``l2`` = mean (x − y)², ``l1`` = mean |x − y|,
 ``relative_l2`` = mean (x − y)² / (y² + 0.01).
@@ -39,6 +40,8 @@ from gpupro.io.png import preview_image, to_uint8, write_png
 from gpupro.pipeline.batch import batched_frame, select_devices, shard_frames
 from gpupro.pipeline.capacity import has_lossy_capacity, render_without_overflow, say_on_stderr
 from gpupro.pipeline.graph import Pipeline
+from gpupro.scene.scene import Scene
+from gpupro.scene.validate import check_scene
 
 LOSSES = ("l2", "l1", "relative_l2")
 OPTIMIZERS = ("adam", "adamw", "sgd", "rmsprop", "lamb")
@@ -109,6 +112,18 @@ def _scatter(parameters, values, params, scene):
     return params, scene
 
 
+def _bounds(parameter: FitParameter, pipeline: Pipeline) -> tuple[float, float]:
+    """``parameter``'s bounds, narrowed to the range its technique declares for a ``params.<pass>.<key>``
+    path (:class:`gpupro.technique.Param`), so that a step never leaves the values a frame accepts."""
+    lower, upper = parameter.lower, parameter.upper
+    root, keys = _split(parameter.path)
+    technique = pipeline[keys[0]].technique if root == "params" and len(keys) == 2 else None
+    for declared in technique.params if technique is not None else ():
+        if declared.name == keys[1]:
+            lower, upper = max(lower, declared.lower), min(upper, declared.upper)
+    return lower, upper
+
+
 def image_loss(rendered: jax.Array, target: jax.Array, kind: str = "l2") -> jax.Array:
     """Scalar loss between ``rendered`` and ``target``, both [H, W, C] (see the module docstring)."""
     diff = rendered - target
@@ -158,6 +173,10 @@ def fit(
 ) -> FitResult:
     """Fits ``parameters`` so that ``buffer`` of the frame matches ``target`` ([H, W, C]).
 
+    The starting ``params`` and, when it is a :class:`gpupro.scene.Scene`, ``scene`` are checked first
+    (:meth:`gpupro.pipeline.Pipeline.check_params`, :func:`gpupro.scene.check_scene`: errors name the
+    value). Each fitted pass parameter stays within the range its technique declares as well as within
+    the :class:`FitParameter`'s bounds.
     ``optimizer`` defaults to ``optax.adam(0.05)``. ``progress`` (a file) gets a line every 10 steps.
     ``cameras``: a list of N cameras to fit several views at once, ``target`` then [N, H, W, C] and the
     loss the mean over views; the views are rendered as one batch sharded over ``devices`` (``None``:
@@ -168,6 +187,9 @@ def fit(
         raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
     if steps < 1:
         raise ValueError(f"steps must be >= 1, got {steps}")
+    pipeline.check_params(params)
+    if isinstance(scene, Scene):  # a pipeline's scene may be any pytree (an image, for a post pass)
+        check_scene(scene)
     optimizer = optimizer or optax.adam(0.05)
     target = jnp.asarray(target, jnp.float32)
     values = _gather(parameters, params, scene)
@@ -177,8 +199,8 @@ def fit(
             raise ValueError(f"fit: with {len(cameras)} cameras the target must be [N, H, W, C] with N = {len(cameras)}, "
                              f"got shape {list(target.shape)}")
         params, scene, views, _ = shard_frames(params, scene, cameras, select_devices(devices))
-    lower = [jnp.float32(p.lower) for p in parameters]
-    upper = [jnp.float32(p.upper) for p in parameters]
+    bounds = [_bounds(p, pipeline) for p in parameters]
+    lower, upper = ([jnp.float32(b[i]) for b in bounds] for i in (0, 1))
 
     steps_by_pipeline = {}  # a grown capacity is a new pipeline, traced once
 

@@ -326,6 +326,28 @@ def param_array(param: Param, value) -> jnp.ndarray:
     return jnp.asarray(array)
 
 
+def check_param_values(technique: Technique, values, where: str) -> None:
+    """Refuses a pass's params ``values`` unless it is a dict of exactly ``technique``'s parameters whose
+    concrete values pass :func:`param_array` (shape, finite, within [lower, upper]); raises
+    :class:`OptionError` keyed ``<where>.<name>``, ``where`` being the pass name (``post.exposure``).
+    Traced values (under ``jit`` or ``grad``, as in a fit's steps) are unknown until run time and left
+    alone, so checking inside a traced frame costs nothing and breaks no fit."""
+    names = [p.name for p in technique.params]
+    if not isinstance(values, Mapping):
+        raise OptionError(where, f"expected a dict of the parameters {names}, got {type(values).__name__}")
+    unknown = sorted(set(values) - set(names))
+    if unknown:
+        raise OptionError(f"{where}.{unknown[0]}", f"unknown parameter of technique {technique.id!r} (parameters: {', '.join(names)})")
+    for param in technique.params:
+        if param.name not in values:
+            raise OptionError(f"{where}.{param.name}", "missing (see Pipeline.init_params())")
+        if not isinstance(values[param.name], jax.core.Tracer):
+            try:
+                param_array(param, values[param.name])
+            except OptionError as error:
+                raise OptionError(f"{where}.{error.key}", error.message) from None
+
+
 def check_finite_params(params: Mapping[str, Any], names, caller: str) -> None:
     """Raises ``ValueError`` naming ``caller`` when a concrete value of ``params[name]`` (for each of
     ``names``) is not finite; traced values (under ``jit`` or ``grad``) are left to the caller."""

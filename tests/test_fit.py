@@ -21,6 +21,7 @@ from gpupro.config import ConfigError
 from gpupro.fit import FitParameter, check_grads, fit, fit_experiment, get_value, plot_curve, set_value
 from gpupro.io import preview_image, read_exr, read_png
 from gpupro.pipeline import make_pass
+from gpupro.technique import OptionError
 
 DEMO = pathlib.Path(__file__).resolve().parent.parent / "configs" / "fit_cornell.toml"
 
@@ -125,6 +126,26 @@ def test_fit_respects_bounds(bound, truth):
     result = fit(pipeline, pipeline.init_params(), IMAGE, target, [FitParameter("params.post.exposure", **bound)],
                  buffer="ldr", optimizer=optax.adam(0.1), steps=40)
     assert float(result.values[0]) == next(iter(bound.values()))
+
+
+def test_fit_keeps_a_pass_parameter_within_its_declared_range():
+    """A step far past post.exposure's declared [-64, 64] stops is projected back onto it, as onto a
+    FitParameter's own bounds: the fitted params stay ones a frame accepts."""
+    pipeline = tiny_pipeline()
+    # An all-white ldr needs every pixel past ACES's shoulder: the gradient raises the exposure.
+    result = fit(pipeline, pipeline.init_params(), IMAGE, jnp.ones_like(IMAGE), [FitParameter("params.post.exposure")],
+                 buffer="ldr", optimizer=optax.sgd(1e6), steps=1)
+    assert float(result.values[0]) == 64.0
+    pipeline.check_params(result.params)
+
+
+@pytest.mark.parametrize("value, message", [(200.0, r"expected values in \[-64\.0, 64\.0\]"),
+                                            (np.nan, "expected finite numbers")])
+def test_fit_refuses_start_values_that_a_frame_would_refuse(value, message):
+    pipeline = tiny_pipeline()
+    with pytest.raises(OptionError, match=rf"^post\.exposure: {message}"):
+        fit(pipeline, with_value(pipeline, "params.post.exposure", value), IMAGE, IMAGE,
+            [FitParameter("params.post.exposure")], steps=1)
 
 
 def test_fit_changes_only_the_given_indices():

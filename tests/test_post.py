@@ -1,10 +1,13 @@
-"""Tone mapping and sRGB: closed forms, known values, monotonicity, gradients, jit."""
+"""Tone mapping and sRGB: closed forms, known values, monotonicity, gradients, jit; the post pass's
+exposure refused outside its declared range."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import gpupro as gp
+from gpupro.pipeline import default_pipeline, make_pass
 from gpupro.post import (
     OPERATORS,
     aces_fitted,
@@ -14,6 +17,8 @@ from gpupro.post import (
     srgb_encode,
     tonemap,
 )
+from gpupro.scene import by_name
+from gpupro.technique import OptionError
 
 RAMP = jnp.concatenate([jnp.linspace(0.0, 1.0, 97), jnp.linspace(1.0, 100.0, 50)[1:]])
 IMAGE = jnp.asarray(np.random.default_rng(3).uniform(-0.5, 20.0, (4, 4, 3)), jnp.float32)
@@ -106,3 +111,19 @@ def test_tone_curves_stay_finite_for_huge_finite_radiance():
         y = np.asarray(tonemap(huge, operator=operator))
         np.testing.assert_allclose(y, 1.0, atol=1e-3, err_msg=operator)
     assert np.isfinite(np.asarray(tonemap(jnp.float32(1.0), operator="aces", exposure=200.0)))
+
+
+@pytest.mark.parametrize("value, message", [
+    (200.0, r"expected values in \[-64\.0, 64\.0\] \(stops\), got 200\.0"),  # 2^200 is inf in float32
+    (-65.0, r"expected values in \[-64\.0, 64\.0\] \(stops\), got -65\.0"),
+    (np.nan, r"expected finite numbers, got nan"),
+])
+def test_exposure_outside_its_range_is_refused_where_it_is_set(value, message):
+    """As a pass's params (configs, notebooks) and in a frame's params (gp.render, before any frame is
+    traced), an exposure that gives a non-finite or all-NaN ldr is refused, naming it."""
+    with pytest.raises(OptionError, match=rf"^exposure: {message}$"):
+        make_pass("post", params={"exposure": value})
+    pipeline = default_pipeline()
+    params = {**pipeline.init_params(), "post": {"exposure": value}}
+    with pytest.raises(OptionError, match=rf"^post\.exposure: {message}$"):
+        gp.render(by_name("box", resolution=(16, 16)), pipeline, params, quiet=True)

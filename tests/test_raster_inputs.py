@@ -1,9 +1,11 @@
-"""Input handling of the public rasterizers: bad static options are named, out-of-range faces are
-skipped and counted, identically with concrete inputs and under ``jax.jit`` of the caller."""
+"""Input handling of the public rasterizers: bad static options are named; out-of-range faces are
+refused, naming them, when concrete, and skipped and counted under ``jax.jit`` of the caller."""
 
 import functools
+import re
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -88,14 +90,13 @@ def test_numpy_integer_options_are_accepted():
     np.testing.assert_array_equal(np.asarray(numpy.triangle_id), np.asarray(plain.triangle_id))
 
 
-@pytest.mark.parametrize("jit", [False, True])
 @pytest.mark.parametrize("name", ENTRIES)
 @pytest.mark.parametrize("num_vertices", [6, V])  # 6: an index V would read a zero padding vertex
-def test_out_of_range_faces_are_skipped_and_counted(num_vertices, name, jit):
+def test_traced_out_of_range_faces_are_skipped_and_counted(num_vertices, name):
     v = num_vertices
     # A and B keep ids 0 and 2; the rest index V, -1, and both ends (one shape: one compilation).
     faces = np.array([A, [0, 1, v], B, [0, 1, -1], [v + 100, -7, 1]])
-    frags = run(name, CLIP[:v], faces, jit)
+    frags = run(name, CLIP[:v], faces, jit=True)
     np.testing.assert_array_equal(np.asarray(frags.triangle_id), expected_ids(name))
     assert frags.counters["invalid_faces"].dtype == np.int32
     assert int(frags.counters["invalid_faces"]) == 3
@@ -107,15 +108,36 @@ def test_out_of_range_faces_are_skipped_and_counted(num_vertices, name, jit):
 
 
 @pytest.mark.parametrize("name", ENTRIES)
-def test_int64_indices_beyond_int32_are_not_wrapped(name):
-    """2**32 + 5 would wrap to 5 in int32, turning the face into a copy of B that wins B's pixels (tie: lower id)."""
-    expected = expected_ids(name)
-    frags = ENTRIES[name](CLIP, np.array([A, [3, 4, 2**32 + 5], B], np.int64), resolution=RES)
-    np.testing.assert_array_equal(np.asarray(frags.triangle_id), expected)
-    assert int(frags.counters["invalid_faces"]) == 1
-    frags = ENTRIES[name](CLIP, np.array([A, [0, 1, 2**31], B], np.int64), resolution=RES)  # -2**31 in int32
-    np.testing.assert_array_equal(np.asarray(frags.triangle_id), expected)
-    assert int(frags.counters["invalid_faces"]) == 1
+@pytest.mark.parametrize(
+    "bad, shown",
+    [
+        ([0, 1, 6], "face 1 is [0, 1, 6]"),  # one past the last vertex
+        ([0, -1, 2], "face 1 is [0, -1, 2]"),
+        # 2**32 + 5 would wrap to 5 in int32, 2**31 to -2**31: the message shows the indices as given.
+        (np.array([3, 4, 2**32 + 5], np.int64), "face 1 is [3, 4, 4294967301]"),
+        (np.array([0, 1, 2**31], np.int64), "face 1 is [0, 1, 2147483648]"),
+    ],
+    ids=["V", "negative", "int64_wraps_in_range", "int64_wraps_negative"],
+)
+def test_concrete_out_of_range_faces_are_refused(bad, shown, name):
+    """Eager calls see the indices, so a face that could only be skipped is an error naming it."""
+    faces = np.array([A, bad, B], np.asarray(bad).dtype)
+    message = rf"^{name}: 1 of 3 faces have a vertex index outside \[0, 6\).*: {re.escape(shown)}$"
+    with pytest.raises(ValueError, match=message):
+        ENTRIES[name](CLIP[:6], faces, resolution=RES)
+
+
+def test_concrete_refusal_counts_every_bad_face_and_lists_the_first():
+    """JAX arrays outside a trace are concrete too; with many bad faces the count is exact, the list short."""
+    faces = jnp.array([A, [0, 1, 6], B, [0, 1, -1], [106, -7, 1], [9, 9, 9]])
+    with pytest.raises(ValueError, match=r"^rasterize: 4 of 6 faces .* face 1 is \[0, 1, 6\]; face 3 is "
+                                         r"\[0, 1, -1\]; face 4 is \[106, -7, 1\]; \.\.\.$"):
+        rasterize(CLIP[:6], faces, resolution=RES)
+
+
+def test_in_range_concrete_faces_report_no_invalid_faces():
+    frags = rasterize(CLIP, np.array([A, B], np.int64), resolution=RES)
+    assert int(frags.counters["invalid_faces"]) == 0 and (np.asarray(frags.triangle_id) == 1).any()
 
 
 def test_nonfinite_count_ignores_skipped_and_padding_faces():
@@ -131,18 +153,24 @@ def test_nonfinite_count_ignores_skipped_and_padding_faces():
 
 @pytest.mark.parametrize("dtype", [np.int8, np.uint8, np.int16, np.int32])
 def test_face_check_is_the_same_concrete_and_traced_for_narrow_dtypes(dtype):
-    """300 vertices exceed int8's range: every non-negative int8 index is valid, none may overflow."""
+    """300 vertices exceed int8's range: every non-negative int8 index is valid, none may overflow (uint8:
+    every face is valid). Traced faces are masked; concrete ones raise naming exactly the faces the mask
+    drops, and the valid ones come out as traced."""
     info = np.iinfo(dtype)
     wide = np.array([[0, 1, 2], [info.max, 0, 1], [info.min, 0, 1], [0, 1, min(info.max, 300)]])
     faces = wide.astype(dtype)  # every entry representable
-    concrete = _sanitize_faces(faces, 300)
-    traced = jax.jit(_sanitize_faces, static_argnums=1)(faces, 300)
+    traced = jax.jit(_sanitize_faces, static_argnums=(1, 2))(faces, 300, "test")
     valid = ((wide >= 0) & (wide < 300)).all(1)
-    for c, t in zip(concrete, traced):
-        np.testing.assert_array_equal(np.asarray(c), np.asarray(t))
-    np.testing.assert_array_equal(np.asarray(concrete[1]), valid)
-    assert concrete[0].dtype == np.int32 and int(concrete[2]) == (~valid).sum()
-    np.testing.assert_array_equal(np.asarray(concrete[0]), np.where(valid[:, None], faces, 0))
+    np.testing.assert_array_equal(np.asarray(traced[1]), valid)
+    assert traced[0].dtype == np.int32 and int(traced[2]) == (~valid).sum()
+    np.testing.assert_array_equal(np.asarray(traced[0]), np.where(valid[:, None], faces, 0))
+    if not valid.all():
+        named = "; ".join(f"face {i} is {wide[i].tolist()}" for i in np.flatnonzero(~valid))
+        with pytest.raises(ValueError, match=rf"^test: {(~valid).sum()} of 4 faces .*: {re.escape(named)}$"):
+            _sanitize_faces(faces, 300, "test")
+    concrete = _sanitize_faces(faces[valid], 300, "test")
+    np.testing.assert_array_equal(np.asarray(concrete[0]), np.asarray(traced[0])[valid])
+    assert int(concrete[2]) == 0
 
 
 def test_padded_sizes_waste_at_most_a_quarter_and_are_shared():

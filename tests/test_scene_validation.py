@@ -6,6 +6,7 @@ import jax
 import numpy as np
 import pytest
 
+import gpupro as gp
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, SCENES, by_name, check_scene, make_lights
 
 
@@ -25,6 +26,7 @@ def _set(array, index, value):
 BAD = [
     ("lights", "color", (1, 0), np.nan, "light 1 has a NaN or infinite value"),
     ("lights", "color", (2, 1), -1.0, "light 2 has a negative value"),
+    ("lights", "color", (0, 1), 1e38, "light 0 has [1, 1e+38, 1] (intensity × colour); allowed: <= 1e+30"),
     ("lights", "position", (0, 2), np.inf, "light 0 has a NaN or infinite value"),
     ("lights", "direction", (1,), 0.0, "light 1 has a zero direction"),
     ("lights", "direction", (2,), 2.0, "light 2 has a direction of length 3.46"),
@@ -99,3 +101,15 @@ def test_light_values_that_do_not_broadcast_are_named(field, value):
     one = make_lights([POINT, SPOT], color=[2.0, 1.0, 0.5], range=4.0)  # one value for every light
     np.testing.assert_array_equal(np.asarray(one.color), [[2.0, 1.0, 0.5]] * 2)
     np.testing.assert_array_equal(np.asarray(one.range), [4.0, 4.0])
+
+
+def test_a_light_too_bright_for_float32_is_refused_before_rendering():
+    """1e38 W/sr is a finite float32, but the radiance it gives is not: make_lights refuses it, and so does
+    gp.render through check_scene before any frame is traced (rendering it gave inf without a word)."""
+    with pytest.raises(ValueError, match=r"^lights: color: light 1 has \[1e\+38, 1, 1\] \(intensity × colour\); "
+                                         r"allowed: <= 1e\+30"):
+        make_lights([POINT, POINT], color=[[1.0, 1.0, 1.0], [1e38, 1.0, 1.0]])
+    scene = _scene()
+    bright = dataclasses.replace(scene.lights, color=_set(scene.lights.color, (2,), 1e38))
+    with pytest.raises(ValueError, match=r"^scene\.lights\.color: light 2 has \[1e\+38, 1e\+38, 1e\+38\]"):
+        gp.render(scene.replace(lights=bright), quiet=True)

@@ -20,7 +20,9 @@ not when a particular output happens to be requested.
 Parameters. ``init_params()`` returns ``{pass name: default params}`` for the passes whose ``params`` is
 not ``None``; passes without params are omitted and receive ``None``. A ``params`` argument must have
 exactly those keys: a missing or extra key is a :class:`PipelineError` naming it, so that a typo in a
-fitting script is caught rather than silently falling back to defaults.
+fitting script is caught rather than silently falling back to defaults. Calling the pipeline also checks
+the concrete values of passes made from a technique against its declared parameters (shape, finite,
+range), naming e.g. ``post.exposure``; inside the jitted frame the values are traced and pass unseen.
 
 Optional inputs. A pass may list ``optional`` inputs: they are wired when some pass of the pipeline
 produces them (a shadow-map pass feeding shading) and left out of ``inputs`` otherwise.
@@ -45,7 +47,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from gpupro.technique import OptionError, Technique, default_params, registered, validate_options
+from gpupro.technique import (OptionError, Technique, check_param_values, default_params, registered,
+                              validate_options)
 
 COUNTERS = "counters"
 
@@ -311,8 +314,13 @@ class Pipeline:
                 stack.extend(self._producer[b] for b in p.inputs + p.optional if b in self._producer)
         return tuple(p for p in self._passes if p.name in needed)
 
-    def _check_params(self, params: Any):
-        """Strict key check: a typo must not silently fall back to a pass's defaults."""
+    def check_params(self, params: Any):
+        """Refuses ``params`` unless it has exactly the passes' entries (a :class:`PipelineError`: a typo
+        must not silently fall back to a pass's defaults) and, for passes made from a registered
+        technique, exactly its parameters with concrete values of the declared shape, finite and within
+        the declared range (:func:`gpupro.technique.check_param_values`: an
+        :class:`gpupro.technique.OptionError` naming ``<pass>.<param>``, e.g. ``post.exposure``). Traced
+        values are left alone."""
         if not isinstance(params, Mapping):
             raise PipelineError(f"params must be a dict keyed by pass name, got {type(params).__name__}")
         expected = [p.name for p in self._passes if p.params is not None]
@@ -321,6 +329,9 @@ class Pipeline:
         if missing or extra:
             raise PipelineError(f"params is missing entries for passes {missing} and has unexpected entries "
                                 f"{extra}; expected exactly {expected} (see Pipeline.init_params())")
+        for p in self._passes:
+            if p.params is not None and p.technique is not None:
+                check_param_values(p.technique, params[p.name], p.name)
 
     def _check_state(self, state: Any, needed: tuple[Pass, ...]):
         if not isinstance(state, Mapping):
@@ -343,7 +354,7 @@ class Pipeline:
             needed = self._needed(requested)
 
             def frame(params, scene, state=None):
-                self._check_params(params)  # runs at trace time: params' keys are part of its structure
+                self.check_params(params)  # at trace time: the keys are part of its structure, the values traced
                 carried = self.init_state(scene) if state is None else dict(state)
                 self._check_state(carried, needed)
                 buffers: dict[str, Any] = {}
@@ -360,7 +371,9 @@ class Pipeline:
         return self._frames[requested]
 
     def __call__(self, params: Any, scene: Any, state: Any = None, *, outputs: str | Sequence[str] | None = None):
-        """Run one frame: ``self.frame(outputs)(params, scene, state)``."""
+        """Run one frame: ``self.frame(outputs)(params, scene, state)``, after :meth:`check_params` has
+        seen the values (inside the jitted frame they are traced)."""
+        self.check_params(params)
         return self.frame(outputs)(params, scene, state)
 
     def replace(self, name: str, new_pass: Pass) -> Pipeline:

@@ -92,13 +92,16 @@ def _check_inputs(clip, faces, resolution, where: str):
     return clip, faces, resolution
 
 
-def _sanitize_faces(faces, num_vertices: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _sanitize_faces(faces, num_vertices: int, where: str) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Replaces faces with an index outside [0, V) by [0, 0, 0], which setup culls (indices not distinct).
 
     ``faces`` [F, 3] of any integer dtype, numpy, a JAX array or traced; ``num_vertices`` V is the
     caller's count, before :func:`_pad` appends zero vertices that an index == V would otherwise hit.
     The test runs in the caller's dtype, before the cast to int32. Returns ``(faces int32 [F, 3],
-    valid bool [F], invalid int32 scalar)``, the same with concrete and traced inputs.
+    valid bool [F], invalid int32 scalar)``, the same with concrete and traced inputs, except that
+    concrete faces (numpy, or a JAX array outside a trace) with an index outside [0, V) raise
+    ``ValueError`` naming ``where`` and the faces (:func:`_out_of_range`): only traced faces, whose
+    values are unknown until run time, are skipped and counted.
     """
     xp = jnp if isinstance(faces, jax.Array) else np
     in_range = faces >= 0
@@ -106,8 +109,21 @@ def _sanitize_faces(faces, num_vertices: int) -> tuple[jax.Array, jax.Array, jax
     if num_vertices <= np.iinfo(faces.dtype).max:
         in_range &= faces < num_vertices
     valid = xp.all(in_range, axis=1)
+    # A concrete JAX array captured by a jitted caller gives a traced mask: skipped and counted as well.
+    if not isinstance(valid, jax.core.Tracer) and not bool(valid.all()):
+        raise ValueError(_out_of_range(np.asarray(faces), np.asarray(valid), num_vertices, where))
     safe = xp.where(valid[:, None], faces, 0).astype(np.int32)  # every entry now lies in [0, V)
     return jnp.asarray(safe), jnp.asarray(valid), jnp.asarray(xp.sum(~valid), jnp.int32)
+
+
+def _out_of_range(faces: np.ndarray, valid: np.ndarray, num_vertices: int, where: str, shown: int = 3) -> str:
+    """The error for concrete ``faces`` [F, 3] whose rows with ``valid`` [F] false index outside [0, V):
+    how many, the first ``shown`` with their indices as given (an int64 index is printed before any
+    cast to int32 could wrap it), and the valid range."""
+    bad = np.flatnonzero(~valid)
+    listed = "; ".join(f"face {i} is {faces[i].tolist()}" for i in bad[:shown]) + ("; ..." if bad.size > shown else "")
+    return (f"{where}: {bad.size} of {len(faces)} faces have a vertex index outside [0, {num_vertices}), the "
+            f"indices of clip's {num_vertices} vertices: {listed}")
 
 
 def padded_size(n: int) -> int:
@@ -287,10 +303,11 @@ def rasterize(
     Returns:
       :class:`Fragments`. Nothing is dropped when a capacity is exceeded: the excess is processed
       in further passes, and ``counters`` reports it (``pair_overflow``, ``tile_overflow_pairs``,
-      ``tiles_overflowed``, ``binning_passes``, ``tile_chunks``, ``tail_pairs``). Works under ``jax.jit``. Faces
-      with an index outside [0, V) are never drawn and ``counters["invalid_faces"]`` counts them,
-      with concrete inputs and under ``jit`` alike. NaN/inf positions raise ``ValueError`` with
-      concrete inputs; under ``jit`` such triangles are not drawn and
+      ``tiles_overflowed``, ``binning_passes``, ``tile_chunks``, ``tail_pairs``). Works under ``jax.jit``.
+      Concrete faces with an index outside [0, V) (negative, too large, or an int64 beyond int32) raise
+      ``ValueError`` naming them, their count and the range; under ``jit`` such faces are never drawn
+      and ``counters["invalid_faces"]`` counts them (0 for concrete faces). NaN/inf positions raise
+      ``ValueError`` with concrete inputs; under ``jit`` such triangles are not drawn and
       ``counters["nonfinite_triangles"]`` counts them. Malformed shapes, dtypes and static options
       raise ``ValueError`` naming the argument.
       Vertex and face counts are padded (:func:`padded_size`, four sizes per octave) so that changing counts
@@ -306,7 +323,7 @@ def rasterize(
     resolve = _check_resolve(resolve)
     floor = _check_floor(floor, resolution, samples, "rasterize")
     num_faces = faces.shape[0]
-    faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
+    faces, valid, invalid = _sanitize_faces(faces, clip.shape[0], "rasterize")
     num_tiles = -(-resolution[0] // tile) * -(-resolution[1] // tile)
     clip, faces, valid = _pad(clip, faces, valid)
     frags = _rasterize_padded(
@@ -342,13 +359,14 @@ def reference(
     pixel, ``floor`` None or a depth-peeling floor (depth, triangle id) [H, W(, S)] as in :func:`rasterize`; returns :class:`Fragments` ([H, W] ids and depths, [H, W, 3] barycentrics; a sample axis
     after H, W when ``samples`` > 1).
     Every triangle is tested at every sample; ``counters`` has ``pixel_triangle_tests`` (F H W) and
-    ``invalid_faces`` (faces with an index outside [0, V), never drawn, as in :func:`rasterize`).
+    ``invalid_faces`` (traced faces with an index outside [0, V), never drawn; concrete ones raise
+    ``ValueError``, as in :func:`rasterize`).
     """
     clip, faces, resolution = _check_inputs(clip, faces, resolution, "reference")
     samples = _check_samples(samples)
     floor = _check_floor(floor, resolution, samples, "reference")
     tests = jnp.int32(faces.shape[0] * resolution[0] * resolution[1])
-    faces, valid, invalid = _sanitize_faces(faces, clip.shape[0])
+    faces, valid, invalid = _sanitize_faces(faces, clip.shape[0], "reference")
     clip, faces, _ = _pad(clip, faces, valid)
     frags = _reference_padded(clip, faces, floor, resolution=resolution, samples=samples, cull_backfaces=cull_backfaces)
     return frags._replace(counters={"pixel_triangle_tests": tests, "invalid_faces": invalid})

@@ -27,6 +27,14 @@ import numpy as np
 POINT, SPOT, DIRECTIONAL, CAPSULE = 0, 1, 2, 3
 KINDS = (POINT, SPOT, DIRECTIONAL, CAPSULE)
 
+MAX_COLOR = 1e30
+"""Largest channel of a light's ``color`` (intensity × colour: W/sr, W/m² for directional lights) that
+:func:`make_lights` and :func:`gpupro.scene.check_scene` accept. A colour near float32's largest value
+(3.4e38) makes the rendered radiance inf wherever the light reaches, which would only be seen after
+rendering. The Sun's radiant intensity is about 3e25 W/sr (3.8e26 W / 4π), so no physical light is
+refused, and eight decades are left for what shading multiplies a colour by (the BRDF's peak, the
+inverse-square falloff near the light, the sum over lights)."""
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +63,18 @@ class Lights:
     @property
     def count(self) -> int:
         return self.kind.shape[0]
+
+
+def brightness_problem(color) -> str | None:
+    """'light i has [r, g, b] ...' for the first light of ``color`` [N, 3] (finite, intensity × colour)
+    with a channel above :data:`MAX_COLOR`, or None."""
+    color = np.asarray(color)
+    bright = (color > MAX_COLOR).any(axis=1)
+    if not bright.any():
+        return None
+    i = int(np.argmax(bright))
+    return (f"light {i} has [{', '.join(f'{c:g}' for c in color[i])}] (intensity × colour); allowed: <= {MAX_COLOR:g} "
+            "(gpupro.scene.lights.MAX_COLOR: brighter lights overflow float32 radiance)")
 
 
 def make_lights(
@@ -105,6 +125,8 @@ def make_lights(
     col = vec(color, (1.0, 1.0, 1.0), "color")
     if (col < 0).any():
         raise ValueError("lights: color must be non-negative")
+    if problem := brightness_problem(col):
+        raise ValueError(f"lights: color: {problem}")
     rng = per_light(range, 10.0, "range", (n,))
     rng = np.where(k == DIRECTIONAL, np.inf, rng).astype(np.float32)
     if not (np.isfinite(rng[k != DIRECTIONAL]) & (rng[k != DIRECTIONAL] > 0)).all():

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 
 from gpupro.scene.camera import PROJECTIONS, matrix_problem
-from gpupro.scene.lights import CAPSULE, DIRECTIONAL, KINDS, POINT, SPOT
+from gpupro.scene.lights import CAPSULE, DIRECTIONAL, KINDS, POINT, SPOT, brightness_problem
 from gpupro.scene.materials import range_problem
 
 _UNIT_TOLERANCE = 1e-3  # |‖direction‖ − 1| allowed: shading uses light directions as given, unnormalised
@@ -29,10 +29,10 @@ def check_scene(scene) -> None:
     indices in range, non-zero normals, material ids below the material count); the materials (the
     ranges of :data:`gpupro.scene.materials.RANGES`, texture indices, finite texels); the lights (kind
     POINT, SPOT, DIRECTIONAL or CAPSULE; finite positions of point, spot and capsule lights; finite
-    non-zero directions, of unit length where used (spot, directional and capsule lights); finite
-    colours >= 0; finite range > 0 for point, spot and capsule lights, > 0 or inf for directional ones;
-    cone cosines in [-1, 1] with cos_inner >= cos_outer for spot lights; a finite length >= 0 for
-    capsules, 0 for the other kinds);
+    non-zero directions, of unit length where used (spot, directional and capsule lights); colours in
+    [0, :data:`gpupro.scene.lights.MAX_COLOR`]; finite range > 0 for point, spot and capsule lights, > 0
+    or inf for directional ones; cone cosines in [-1, 1] with cos_inner >= cos_outer for spot lights; a
+    finite length >= 0 for capsules, 0 for the other kinds);
     the camera (finite eye, target, up; 0 < near < far; a field of view or height in range; view,
     projection and view-projection matrices finite in float32).
     """
@@ -141,6 +141,8 @@ def _light_problems(lights):
     negative = (a["color"] < 0).any(axis=1)
     if negative.any():
         yield "color", f"light {int(np.argmax(negative))} has a negative value; allowed: >= 0"
+    if problem := brightness_problem(a["color"]):
+        yield "color", problem
     reach = a["range"]
     bad = np.where(local, ~np.isfinite(reach), np.isnan(reach)) | ~(reach > 0)
     if bad.any():

@@ -29,5 +29,9 @@ register(Technique(
     inputs=(Buffer("hdr", "linear radiance", "RGB"),),
     outputs=(Buffer("ldr", "sRGB-encoded display values in [0, 1]", "RGB"),),
     options=(Option("operator", "aces", one_of(*OPERATORS), "tone curve"),),
-    params=(Param("exposure", 0.0, "stops", "exposure: hdr is scaled by 2^exposure before the tone curve"),),
+    # 2^ev must stay a finite, non-zero float32 (2^200 is inf, and inf × a black pixel's 0 is NaN): ±64
+    # stops scale by at most 2^64 ≈ 1.8e19, so radiance up to 2^64 stays finite, and span far more than any
+    # photographic exposure (daylight to starlight is about 30 stops).
+    params=(Param("exposure", 0.0, "stops", "exposure: hdr is scaled by 2^exposure before the tone curve",
+                  lower=-64.0, upper=64.0),),
 ))
