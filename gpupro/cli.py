@@ -54,8 +54,21 @@ def _list(args) -> None:
         print(catalogue.format_catalogue())
 
 
+def _number(value) -> str:
+    """A counter for the console: whole numbers with thousands separators, others to 3 digits."""
+    return f"{int(value):,}" if float(value).is_integer() else f"{value:.3g}"
+
+
+def _counter_lines(report: dict) -> list[str]:
+    """The report's headline counters (:func:`gpupro.runner.headline_counters`), one line per pass, those
+    of the last frame of a camera path."""
+    heading = [f"counters of frame {report['frames']}:"] if report["frames"] > 1 else []
+    return heading + [f"  {name}: " + ", ".join(f"{counter} {_number(value)}" for counter, value in values.items())
+                      for name, values in report["headline_counters"].items()]
+
+
 def _run(args) -> None:
-    from gpupro.runner import run_experiment
+    from gpupro.runner import files_line, run_experiment
 
     # sys.stderr as it is now: the functions' defaults were bound when they were imported
     report = run_experiment(args.config, out_dir=args.out, overrides=args.overrides, progress=sys.stderr,
@@ -65,7 +78,9 @@ def _run(args) -> None:
     print(f"{report['name']}: {report['triangles']} triangles, {report['lights']} lights, {report['resolution']} "
           f"on {report['device']['device_kind']}{devices}: compile {report['compile_s']:.2f} s, "
           f"frame {ms['median']:.1f} ms (median of {report['timed_runs']} runs)")
-    print(f"wrote {', '.join(report['outputs'])} and report.json in {args.out}")
+    for line in _counter_lines(report):
+        print(line)
+    print(f"wrote {files_line(report)} in {args.out}")
 
 
 def _fit(args) -> None:

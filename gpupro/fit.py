@@ -34,6 +34,7 @@ import numpy as np
 import optax
 from PIL import Image, ImageDraw, ImageFont
 
+from gpupro.compilation import compile_and_say, use_compilation_cache
 from gpupro.config import ConfigError, build_pipeline, build_scene, load_config
 from gpupro.io.exr import read_exr, write_exr
 from gpupro.io.png import preview_image, to_uint8, write_png
@@ -147,6 +148,11 @@ class FitResult(typing.NamedTuple):
     pipeline: typing.Any = None
 
 
+def _say_on(stream):
+    """A function printing a line on ``stream`` (``None``: nothing, as ``say=None`` means)."""
+    return None if stream is None else lambda text: print(text, file=stream, flush=True)
+
+
 def _renderer(pipeline: Pipeline, buffer: str, views):
     """``render(params, scene) -> buffers``: one frame, or the batch of ``views`` (stacked cameras)."""
     if views is None:
@@ -177,7 +183,8 @@ def fit(
     (:meth:`gpupro.pipeline.Pipeline.check_params`, :func:`gpupro.scene.check_scene`: errors name the
     value). Each fitted pass parameter stays within the range its technique declares as well as within
     the :class:`FitParameter`'s bounds.
-    ``optimizer`` defaults to ``optax.adam(0.05)``. ``progress`` (a file) gets a line every 10 steps.
+    ``optimizer`` defaults to ``optax.adam(0.05)``. ``progress`` (a file) gets a line before and after
+    each compilation of the step and a line every 10 steps.
     ``cameras``: a list of N cameras to fit several views at once, ``target`` then [N, H, W, C] and the
     loss the mean over views; the views are rendered as one batch sharded over ``devices`` (``None``:
     the default device, ``"all"`` or a count; see :mod:`gpupro.pipeline.batch`). A capacity that
@@ -190,6 +197,7 @@ def fit(
     pipeline.check_params(params)
     if isinstance(scene, Scene):  # a pipeline's scene may be any pytree (an image, for a post pass)
         check_scene(scene)
+    use_compilation_cache()
     optimizer = optimizer or optax.adam(0.05)
     target = jnp.asarray(target, jnp.float32)
     values = _gather(parameters, params, scene)
@@ -206,7 +214,10 @@ def fit(
 
     def step_for(pipeline):
         if pipeline not in steps_by_pipeline:
-            steps_by_pipeline[pipeline] = make_step(pipeline)
+            step = make_step(pipeline)
+            # Compiled ahead to say how long it took; the jitted step's first call then finds the program.
+            compile_and_say(lambda: step.lower(values, state), "the fit step (frame and gradients)", _say_on(progress))
+            steps_by_pipeline[pipeline] = step
         return steps_by_pipeline[pipeline]
 
     def make_step(pipeline):
@@ -368,6 +379,7 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     of the config as written, from which each parameter starts at its ``init`` value instead (so a config
     can hide the truth and measure its recovery).
     """
+    use_compilation_cache()
     config = load_config(config_path, overrides)
     source = config["_source"]
     section = config.get("fit")
@@ -398,6 +410,8 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         truth = _gather(parameters, params, scene)
     except ValueError as error:
         raise ConfigError(f"{source}: fit.parameters: {error}") from None
+    # The frame renders the target (without fit.target) and the before/after images: compiled here, said.
+    compile_and_say(lambda: pipeline.frame((buffer,)).lower(params, scene), "the frame", _say_on(progress))
 
     if "target" in section:
         images = read_exr(pathlib.Path(source).parent / section["target"])

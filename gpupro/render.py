@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from gpupro.compilation import use_compilation_cache
 from gpupro.pipeline.capacity import render_without_overflow, say_on_stderr
 from gpupro.pipeline.graph import Pipeline
 from gpupro.pipeline.passes import default_pipeline
@@ -18,8 +19,11 @@ def render(scene: Scene, pipeline: Pipeline | None = None, params=None, state=No
     ``init_params()``; ``outputs`` to the pipeline's outputs (any intermediate buffer name works).
     The scene is checked first (:func:`gpupro.scene.check_scene`: a ValueError names a bad field). If a
     capacity overflows, it is grown and the frame rendered again (a line on stderr says so unless
-    ``quiet``), so no light or triangle is ever missing.
+    ``quiet``), so no light or triangle is ever missing. JAX's persistent compilation cache is turned on
+    for the process (:func:`gpupro.compilation.use_compilation_cache`: ``GPUPRO_COMPILATION_CACHE=off``
+    leaves it off).
     """
+    use_compilation_cache()
     check_scene(scene)
     pipeline = pipeline or default_pipeline()
     params = pipeline.init_params() if params is None else params

@@ -1,8 +1,10 @@
 """``gpupro run``: render an experiment config and write EXR, PNG preview and ``report.json``.
 
 Timing follows docs/design.md: compile time is measured on its own (ahead-of-time lowering and
-compilation of the frame function), then every frame is timed with ``block_until_ready``; the report
-gives the median, min and max per-frame milliseconds and every frame's work counters.
+compilation of the frame function, said on the console before and after, with JAX's persistent
+compilation cache on: :mod:`gpupro.compilation`), then every frame is timed with ``block_until_ready``;
+the report gives the median, min and max per-frame milliseconds, every frame's work counters, and the
+headline counters the console prints (:func:`headline_counters`).
 
 Camera paths run in order, threading the pipeline's state (:meth:`gpupro.Pipeline.init_state`) from
 frame to frame, or, with ``devices``, as one batch sharded over the devices
@@ -27,6 +29,7 @@ import jax
 import numpy as np
 
 from gpupro.bench import device_info
+from gpupro.compilation import compile_and_say, use_compilation_cache
 from gpupro.config import ConfigError, build_pipeline, build_scene, camera_path, describe_size, load_config
 from gpupro.io.exr import write_exr
 from gpupro.io.png import preview_image, write_animation, write_png
@@ -42,6 +45,23 @@ SATURATED_WARNING = 0.5
 def _plain(counters) -> dict:
     """Counters as plain Python numbers, nested by pass."""
     return {k: _plain(v) if isinstance(v, dict) else np.asarray(v).item() for k, v in counters.items()}
+
+
+def headline_counters(pipeline, counters: dict) -> dict[str, dict]:
+    """The counters ``gpupro run`` prints, ``{pass: {counter: value}}`` from ``counters`` (plain numbers,
+    nested by pass): those each pass's technique marks ``headline`` (:class:`gpupro.technique.Counter`),
+    and every capacity's counter above zero (after a run only a capacity that is not lossy can be: its
+    extra steps ran). Passes with neither are left out."""
+    shown = {}
+    for p in pipeline.passes:
+        if p.technique is None or p.name not in counters:
+            continue
+        capacity_counters = {c.counter for c in p.technique.capacities}
+        values = {c.name: counters[p.name][c.name] for c in p.technique.counters if c.name in counters[p.name]
+                  and (c.headline or (c.name in capacity_counters and counters[p.name][c.name] > 0))}
+        if values:
+            shown[p.name] = values
+    return shown
 
 
 def _flatten(tree, prefix: str) -> dict[str, np.ndarray]:
@@ -112,6 +132,24 @@ def _write(buffers: dict, pipeline, config: dict, camera, out_dir: pathlib.Path,
     return written, shown
 
 
+def _stems(name: str, frames: int) -> list[str]:
+    """The file name stem of each frame: the config's name, numbered for camera paths."""
+    return [name] if frames == 1 else [f"{name}_{i:04d}" for i in range(frames)]
+
+
+def files_line(report: dict) -> str:
+    """The files a run wrote (``report["outputs"]`` and report.json) in a few words, a camera path's frame
+    files as one range per kind: ``32 frames: orbit_0000..0031.exr, orbit_0000..0031.png, orbit.gif and
+    report.json``."""
+    names, stems, count = report["outputs"], _stems(report["name"], report["frames"]), ""
+    if len(stems) > 1:
+        kinds = [name.removeprefix(stems[0]) for name in names if name.startswith(stems[0] + ".")]
+        frame_files = {stem + kind for stem in stems for kind in kinds}
+        ranges = [f"{stems[0]}..{stems[-1].removeprefix(report['name'] + '_')}{kind}" for kind in kinds]
+        names, count = ranges + [n for n in names if n not in frame_files], f"{len(stems)} frames: "
+    return count + ", ".join(names) + (" and " if names else "") + "report.json"
+
+
 def _check_frame(buffers: dict, index: int):
     """Refuses to write a wrong picture: non-finite values, or triangles skipped for NaN positions or
     vertex indices outside the mesh."""
@@ -148,14 +186,11 @@ def _frame_at(buffers: dict, i: int) -> dict:
 
 
 class _Progress:
-    """A progress bar over frames (tqdm) for camera paths, one line for a single frame."""
+    """Frames on the console: a line for the first frame, then for camera paths a progress bar (tqdm) over
+    the others, started after the first so that its compilation stays out of the bar's rate and ETA."""
 
     def __init__(self, frames: int, stream):
         self.frames, self.stream, self.bar = frames, stream, None
-        if stream is not None and frames > 1:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=frames, file=stream, unit="frame", leave=True, dynamic_ncols=True)
 
     def say(self, text: str):
         if self.stream is None:
@@ -166,11 +201,18 @@ class _Progress:
             print(text, file=self.stream, flush=True)
 
     def frame_done(self, index: int, ms: float):
+        if self.stream is None:
+            return
         if self.bar is not None:
             self.bar.set_postfix_str(f"{ms:.1f} ms")
             self.bar.update(1)
-        elif self.stream is not None:
-            print(f"frame {index + 1}/{self.frames}: {ms:.1f} ms", file=self.stream, flush=True)
+            return
+        print(f"frame {index + 1}/{self.frames}: {ms:.1f} ms", file=self.stream, flush=True)
+        if index + 1 < self.frames:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.frames, initial=index + 1, file=self.stream, unit="frame", leave=True,
+                            dynamic_ncols=True)
 
     def close(self):
         if self.bar is not None:
@@ -178,16 +220,16 @@ class _Progress:
 
 
 class _Compiled:
-    """One compiled program per pipeline (a grown capacity is a new pipeline), compile seconds summed."""
+    """One compiled program per pipeline (a grown capacity is a new pipeline), compile seconds summed;
+    each compilation said in a line before and after (:func:`gpupro.compilation.compile_and_say`)."""
 
-    def __init__(self, lower):
-        self.lower, self.programs, self.seconds = lower, {}, 0.0
+    def __init__(self, lower, what: str, say):
+        self.lower, self.what, self.say, self.programs, self.seconds = lower, what, say, {}, 0.0
 
     def __call__(self, pipeline):
         if pipeline not in self.programs:
-            start = time.perf_counter()
-            self.programs[pipeline] = self.lower(pipeline).compile()
-            self.seconds += time.perf_counter() - start
+            self.programs[pipeline], seconds = compile_and_say(lambda: self.lower(pipeline), self.what, self.say)
+            self.seconds += seconds
         return self.programs[pipeline]
 
 
@@ -204,7 +246,7 @@ def _timed(program, args, repeats: int):
 def _run_in_order(pipeline, params, scene, cameras, repeats, progress):
     """Frames one after the other, threading state; returns (pipeline, frames' buffers, ms, compile s)."""
     state = pipeline.init_state(scene) if pipeline.stateful else None
-    compiled = _Compiled(lambda p: p.frame().lower(params, scene, state))
+    compiled = _Compiled(lambda p: p.frame().lower(params, scene, state), "the frame", progress.say)
     counters_of = (lambda run: run[0][COUNTERS]) if state is None else (lambda run: run[0][0][COUNTERS])
     frames, times_ms = [], []
     for index, camera in enumerate(cameras):
@@ -223,7 +265,7 @@ def _run_batched(pipeline, params, scene, cameras, repeats, devices, progress):
     per-frame times the batch time divided by the frame count."""
     check_batchable(pipeline)
     *placed, n = shard_frames(params, scene, cameras, select_devices(devices))
-    compiled = _Compiled(lambda p: batched_frame(p).lower(*placed))
+    compiled = _Compiled(lambda p: batched_frame(p).lower(*placed), f"the batch of {n} frames", progress.say)
     # The padding frames repeat the last camera, so their counters add no overflow of their own.
     pipeline, (buffers, batch_ms) = render_without_overflow(
         pipeline, lambda p: _timed(compiled(p), placed, repeats), say=progress.say,
@@ -242,7 +284,9 @@ def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     paths), ``.npz`` files for buffers that are not images, ``<name>.png`` (and ``<name>.gif`` for
     paths) and ``report.json`` under ``out_dir``. ``devices``: ``None`` renders frames in order on the
     default device; ``"all"`` or a count renders the path as one batch sharded over that many devices.
+    Compilations, frames, capacity growth and warnings are said on ``progress`` (``None``: silent).
     """
+    use_compilation_cache()
     config = load_config(config_path, overrides)
     scene = build_scene(config)
     check_scene(scene)
@@ -265,7 +309,7 @@ def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         bar.close()
 
     written, shown = [], []
-    stems = [config["name"]] if len(frames) == 1 else [f"{config['name']}_{i:04d}" for i in range(len(frames))]
+    stems = _stems(config["name"], len(frames))
     for stem, buffers, camera in zip(stems, frames, cameras):
         files, image = _write(buffers, pipeline, config, camera, out_dir, stem, preview)
         written += files
@@ -274,6 +318,7 @@ def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         write_animation(out_dir / f"{config['name']}.gif", shown)
         written.append(f"{config['name']}.gif")
 
+    last = _plain(frames[-1][COUNTERS])
     report = {
         "name": config["name"],
         "config": {k: v for k, v in config.items() if not k.startswith("_")},
@@ -288,7 +333,8 @@ def run_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         "timed_runs": len(times_ms),
         "frame_ms": {"median": float(np.median(times_ms)), "min": float(np.min(times_ms)), "max": float(np.max(times_ms))},
         "frames_per_second": 1e3 / float(np.median(times_ms)),
-        "counters": _plain(frames[-1][COUNTERS]),
+        "counters": last,
+        "headline_counters": headline_counters(pipeline, last),
         "frame_counters": [_plain(f[COUNTERS]) for f in frames],
         "capacities": capacities(pipeline),
         "pipeline": pipeline.describe(),

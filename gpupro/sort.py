@@ -179,7 +179,9 @@ def stable_order(keys, *, key_bound: int) -> jax.Array:
 
     - on CPUs, keys below 2^16: numpy's stable argsort of uint16 keys, a radix sort (linear time),
       through ``jax.pure_callback``: XLA:CPU has only comparison sorts (2^19 keys in 3,601 tiles: 5 ms
-      against 21 ms for the packed sort below, on the 2-core CPU);
+      against 21 ms for the packed sort below, on the 2-core CPU); not where JAX's persistent
+      compilation cache is on (:mod:`gpupro.compilation`), which keeps no program with a host callback:
+      compiling a frame again costs far more than the sort saves;
     - where key and index fit in 32 bits together (``(key_bound + 1) · 2^⌈log2 n⌉ ≤ 2^32``): the
       pairs packed as ``key · 2^⌈log2 n⌉ + index`` into one uint32 and sorted by XLA's one-operand
       sort (the distinct indices make any sort stable; 2^19 pairs in 21 ms on the 2-core CPU where
@@ -194,7 +196,8 @@ def stable_order(keys, *, key_bound: int) -> jax.Array:
     else:
         def device_order(keys):
             return jax.lax.sort((keys, jnp.arange(n, dtype=jnp.int32)), num_keys=1, is_stable=True)[1]
-    if key_bound >= 1 << 16 or n == 0:
+    cached = jax.config.jax_compilation_cache_dir and jax.config.jax_enable_compilation_cache
+    if key_bound >= 1 << 16 or n == 0 or cached:
         return device_order(keys)
     return jax.lax.platform_dependent(keys, cpu=_host_radix_order, default=device_order)
 

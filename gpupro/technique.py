@@ -184,10 +184,13 @@ def _one_of(value) -> tuple:
 
 
 class Counter(typing.NamedTuple):
-    """A work counter a technique reports (scalar per frame), named alike across a family."""
+    """A work counter a technique reports (scalar per frame), named alike across a family. ``headline``:
+    one of the few that ``gpupro run`` prints after a run (the work the technique exists to reduce or
+    bound, e.g. ``lighting_computations``); every counter is in report.json."""
 
     name: str
     doc: str
+    headline: bool = False
 
 
 class Technique(typing.NamedTuple):

@@ -8,15 +8,22 @@ than MAX_MAPPINGS regions, which frees those mappings; later tests recompile wha
 The count is taken every few tests, not after each, because reading ``/proc/self/maps`` costs about
 50 ms at 20,000 regions; nor only at module ends, as it once was: `-m slow` runs 118 cases of
 tests/test_techniques.py in a row, and a worker crossed the limit inside that one module.
+
+The entry points turn on a persistent compilation cache in the user's cache folder (gpupro.compilation);
+the suite sets ``GPUPRO_COMPILATION_CACHE=off`` (here, before any test and in every worker), so that it
+writes nothing there and every run compiles what it tests.
 """
 
 from __future__ import annotations
 
 import gc
+import os
 import pathlib
 
 import jax
 import pytest
+
+os.environ["GPUPRO_COMPILATION_CACHE"] = "off"
 
 MAX_MAPPINGS = 20_000
 """Mappings above which the JAX caches are cleared: about a third of the kernel's default limit, reached

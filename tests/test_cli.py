@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import gpupro as gp
 from gpupro.technique import registered
 from gpupro.cli import main
 from gpupro.io import read_exr, read_png
@@ -77,8 +78,34 @@ def test_run_succeeds_and_summarises(default_run):
     code, out, stdout, stderr = default_run
     assert code == 0, stderr
     assert "default: 4162 triangles, 16 lights, 32x32" in stdout
+    assert stdout.splitlines()[-1] == f"wrote default.exr, default.png and report.json in {out}"
     assert stderr.splitlines()[-1].startswith("frame 1/1: ")
     assert sorted(p.name for p in out.iterdir()) == ["default.exr", "default.png", "report.json"]
+
+
+def test_run_says_when_it_compiles_and_for_how_long(default_run):
+    report = json.loads((default_run[1] / "report.json").read_text())
+    assert default_run[3].splitlines()[-3:-1] == ["compiling the frame...", f"compiled in {report['compile_s']:.1f} s"]
+
+
+def test_run_prints_the_headline_counters_of_each_pass(default_run):
+    out, stdout = default_run[1], default_run[2]
+    counters = json.loads((out / "report.json").read_text())["counters"]
+    raster = {"triangles_after_culling": counters["raster"]["triangles_after_culling"]}
+    raster.update({k: counters["raster"][k] for k in ("tiles_overflowed", "pair_overflow") if counters["raster"][k] > 0})
+    assert stdout.splitlines()[1:-1] == [  # gbuffer and post have no counters to show
+        "  raster: " + ", ".join(f"{k} {v:,}" for k, v in raster.items()),
+        f"  deferred: lighting_computations {int(counters['deferred']['lighting_computations']):,}"]
+
+
+def test_headline_counters_are_the_marked_ones_and_capacity_counters_above_zero():
+    from gpupro.runner import headline_counters
+
+    pipeline = gp.Pipeline([*gp.default_pipeline().passes, gp.Pass("mine", lambda params, inputs, scene: ({}, {}), ("ldr",), ("mine",))])
+    counters = {"raster": {"triangles": 9, "triangles_after_culling": 7, "tiles_overflowed": 0, "pair_overflow": 3},
+                "gbuffer": {}, "deferred": {"lighting_computations": 2.5e6, "lights": 4}, "post": {}, "mine": {"work": 1}}
+    assert headline_counters(pipeline, counters) == {"raster": {"triangles_after_culling": 7, "pair_overflow": 3},
+                                                     "deferred": {"lighting_computations": 2.5e6}}
 
 
 def test_run_writes_every_requested_buffer_to_exr(default_run):
@@ -170,7 +197,12 @@ def test_camera_path_writes_one_exr_per_frame(tmp_path, capsys):
     config.write_text(CAMERA_PATH)
     out = tmp_path / "out"
     assert main(["run", str(config), "--out", str(out)]) == 0
-    assert "3/3" in capsys.readouterr().err  # the progress bar reached the last frame
+    printed = capsys.readouterr()
+    assert "3/3" in printed.err  # the progress bar reached the last frame
+    assert printed.err.count("compiling the frame...") == 1  # once for the path: the frames share the program
+    lines = printed.out.splitlines()
+    assert lines[1] == "counters of frame 3:" and lines[2].startswith("  raster: triangles_after_culling ")
+    assert lines[-1] == f"wrote 3 frames: orbit_0000..0002.exr, orbit_0000..0002.png, orbit.gif and report.json in {out}"
     expected = [f"orbit_{i:04d}.{ext}" for i in range(3) for ext in ("exr", "png")] + ["orbit.gif"]
     assert sorted(p.name for p in out.iterdir()) == sorted(expected + ["report.json"])
     report = json.loads((out / "report.json").read_text())
@@ -183,6 +215,27 @@ def test_camera_path_writes_one_exr_per_frame(tmp_path, capsys):
     frames = [read_exr(out / f"orbit_{i:04d}.exr")["hdr"] for i in range(3)]
     assert all(f.shape == (32, 32, 3) for f in frames)
     assert np.abs(frames[0] - frames[1]).mean() > 1e-3 and np.abs(frames[1] - frames[2]).mean() > 1e-3
+
+
+def test_the_progress_bar_leaves_the_first_frame_out_of_its_rate(monkeypatch):
+    """A camera path's first frame comes after its compilation: the bar's rate and time left are the later
+    frames' (here 2 s each, the first after 100 s)."""
+    import tqdm.std
+
+    from gpupro.runner import _Progress
+
+    clock = [1000.0]
+    monkeypatch.setattr(tqdm.std, "time", lambda: clock[0])
+    stream = io.StringIO()
+    progress = _Progress(5, stream)
+    clock[0] += 100.0
+    progress.frame_done(0, 10.0)
+    for index in range(1, 4):
+        clock[0] += 2.0
+        progress.frame_done(index, 10.0)
+    assert stream.getvalue().startswith("frame 1/5: 10.0 ms\n")
+    assert "4/5 [00:06<00:02,  2.00s/frame" in str(progress.bar)
+    progress.close()
 
 
 def test_nan_parameters_are_refused_by_name(tmp_path, capsys):

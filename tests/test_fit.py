@@ -49,7 +49,10 @@ def test_demo_recovers_lights_and_roughness_within_one_percent(demo):
         np.testing.assert_allclose(summary["fitted"][key], summary["truth"][key], rtol=0.01)
     assert re.fullmatch(r"fit_cornell: loss \S+ -> \S+ in 200 steps\nwrote loss.csv, loss.png, comparison.png, "
                         r"comparison.exr, error.png, fitted.json in .*\n", stdout)
-    assert stderr.splitlines()[0] == f"step 1/200: loss {summary['loss'][0]:.4g}"
+    said = stderr.splitlines()
+    assert said[0] == "compiling the frame..." and said[2] == "compiling the fit step (frame and gradients)..."
+    assert re.fullmatch(r"compiled in \d+\.\d s", said[1]) and re.fullmatch(r"compiled in \d+\.\d s", said[3])
+    assert said[4] == f"step 1/200: loss {summary['loss'][0]:.4g}"
 
 
 def test_demo_writes_the_loss_curve(demo):

@@ -144,6 +144,8 @@ def check_specification(t):
         assert p.unit and p.doc and p.lower <= np.min(p.default) and np.max(p.default) <= p.upper, p.name
     for o in t.options:
         assert o.doc and o.check(o.default), o.name
+    assert not t.counters or any(c.headline for c in t.counters), \
+        "mark the counters `gpupro run` prints after a run: Counter(..., headline=True)"
 
 
 @pytest.mark.parametrize("technique_id", IDS)

@@ -147,7 +147,7 @@ SHADING_PARAMS = (
     Param("background", (0.0, 0.0, 0.0), "W/(m² sr)", "radiance of empty pixels", lower=0.0),
 )
 SHADING_COUNTERS = (
-    Counter("lighting_computations", "Σ over covered pixels of the lights evaluated there (float32)"),
+    Counter("lighting_computations", "Σ over covered pixels of the lights evaluated there (float32)", headline=True),
     Counter("lights", "lights in the scene"),
 )
 """Options, parameters and counters shared with every technique that shades like this one."""

@@ -242,7 +242,7 @@ CAPACITIES = (_when(TILED_CAPACITIES, "tiled")
               + _when(tuple(c for c in CLUSTERED_CAPACITIES if c is not LIST_MEMORY_CAPACITY), "clustered")
               + (LIST_MEMORY_CAPACITY,) + _when(LLL_CAPACITIES, "light_linked_list"))
 COUNTERS = _unique((
-    Counter("lighting_computations", "Σ over translucent samples of the lights evaluated there (float32)"),
+    Counter("lighting_computations", "Σ over translucent samples of the lights evaluated there (float32)", headline=True),
     Counter("exact_lighting_computations", "Σ over translucent samples of the evaluated lights whose influence reaches "
                                            "them (float32)"),
     Counter("light_list_bytes", "bytes of the chosen structure's light lists (tiles, clusters or links)"),

@@ -564,7 +564,8 @@ TECHNIQUE = register(Technique(
     capacities=(Capacity("update_rows", "levels_rebuilt", "rows and columns updated incrementally per level and frame; a "
                          "level that moves further (or has no history) is filled entirely", lossy=False),),
     counters=(
-        Counter("triangles_drawn", "triangles of the active levels' footprints drawn (module docstring's T)"),
+        Counter("triangles_drawn", "triangles of the active levels' footprints drawn (module docstring's T)",
+                headline=True),
         Counter("levels_active", "levels drawn, L' (extent above κ h_v, and the coarsest)"),
         Counter("samples_updated", "elevation samples written by this frame's toroidal update"),
         Counter("levels_rebuilt", "active levels filled entirely (no history, or moved more than update_rows)"),

@@ -760,7 +760,7 @@ TECHNIQUE = register(Technique(
     capacities=(Capacity("modification_window", "window_overflow",
                          "texels of a tool's work region outside its modification window (their change is lost)",
                          needed="window_needed", small=4),),
-    counters=(Counter("triangles_drawn", "triangles of the drawn meshes"),
+    counters=(Counter("triangles_drawn", "triangles of the drawn meshes", headline=True),
               Counter("meshes_drawn", "meshes drawn (the centre mesh and the visible side meshes)"),
               Counter("meshes_culled", "side meshes culled by the frustum test"),
               Counter("levels_active", "levels with a drawn mesh"),

@@ -727,7 +727,7 @@ TECHNIQUE = register(Technique(
     capacities=(Capacity("blade_capacity", "blade_overflow", "masters drawn (with their slaves): the nearest selected "
                          "ones; the farther are dropped", needed="blades_selected"),),
     counters=(
-        Counter("triangles_drawn", "ground triangles plus 2(N − 1) per blade drawn"),
+        Counter("triangles_drawn", "ground triangles plus 2(N − 1) per blade drawn", headline=True),
         Counter("blades_drawn", "blades drawn, masters and slaves"),
         Counter("blades_simulated", "master blades simulated this step (the LOD count n)"),
         Counter("blades_selected", "masters within the (widened) LOD threshold, P[q_thr + 1]"),

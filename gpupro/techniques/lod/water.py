@@ -583,7 +583,7 @@ TECHNIQUE = register(Technique(
         Param("shininess", 40.0, "1", "s: Blinn–Phong exponent of the sun's glint", lower=0.0),
     ),
     counters=(
-        Counter("triangles_drawn", "triangles of the radial grid drawn (M + 2M(N − 1))"),
+        Counter("triangles_drawn", "triangles of the radial grid drawn (M + 2M(N − 1))", headline=True),
         Counter("vertices_displaced", "vertices inside the guard-band frustum, sampled and displaced"),
         Counter("texture_fetches", "packed bilinear fetches of the vertex stage: per displaced vertex and octave, "
                 "1, or 2 inside the blend band (float32)"),

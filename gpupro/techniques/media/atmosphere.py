@@ -393,7 +393,7 @@ register(Technique(
         RAYLEIGH_PHASE,
     ),
     params=PARAMS,
-    counters=(Counter("view_samples", "samples along the view rays (pixels × samples; float32)"),
+    counters=(Counter("view_samples", "samples along the view rays (pixels × samples; float32)", headline=True),
               Counter("optical_depth_lookups", "optical-depth table reads or scale-function evaluations (float32)")),
     example_options={"steps": 3, "lut_size": 16},
     notes="Camera inside the atmosphere only (the chapter's *FromAtmosphere shaders); the sun does not light the "
@@ -417,7 +417,7 @@ register(Technique(
         RAYLEIGH_PHASE,
     ),
     params=PARAMS,
-    counters=(Counter("view_samples", "samples along the view rays (pixels × samples; float32)"),
+    counters=(Counter("view_samples", "samples along the view rays (pixels × samples; float32)", headline=True),
               Counter("sun_quadrature_points", "quadrature points on the sun rays (float32)")),
     example_options={"steps": 16, "sun_samples": 4},
 ))

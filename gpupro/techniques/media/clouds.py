@@ -1131,7 +1131,8 @@ register(Technique(
               Counter("particles_visible", "particles left after frustum culling"),
               Counter("rendered_pixels", "pixels the particles are rendered at"),
               Counter("ray_sphere_tests", "pixel–particle ray–sphere tests run (every pixel with every particle of "
-                                          "each chunk without binning; with its tile's list entries with binning)"),
+                                          "each chunk without binning; with its tile's list entries with binning)",
+                      headline=True),
               Counter("render_steps", "steps of the render loop run (chunks of particles, or of every tile's list)"),
               Counter("tile_particle_pairs", "tile–particle pairs binned: Σ over tiles of the particles listed "
                                              "(0 without binning)"),

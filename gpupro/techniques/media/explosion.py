@@ -560,7 +560,7 @@ PARAMS = (
                                                        "light towards the eye", lower=0.0),
     Param("light_direction", (0.3, 1.0, 0.2), "1", "direction towards the directional light (normalised; not zero)"),
 )
-COUNTERS = (Counter("march_steps", "march segments sampled, over all pixels"),
+COUNTERS = (Counter("march_steps", "march segments sampled, over all pixels", headline=True),
             Counter("light_march_steps", "samples of the marches towards the light, over all pixels"))
 EXAMPLE = {"noise_size": 4, "octaves": 2, "noise_filter": "cubic", "steps": 24, "light_steps": 3, "light_interval": 2}
 

@@ -526,7 +526,7 @@ PARAMS = (
 FILL_COUNTERS = (Counter("voxels_filled", "voxels filled: bricks in the working set × B³ (dense: N³)"),
                  Counter("particle_voxel_tests", "(voxel, particle) pairs tested"),
                  Counter("march_steps", "eye-ray samples with a positive length in occupied metavoxels (dense: in "
-                                        "the volume)"))
+                                        "the volume)", headline=True))
 EXAMPLE = {"metavoxels": 4, "brick": 4, "particles": 6, "particle_radius": 0.15, "spread": 0.5, "cube_map_size": 4,
            "march_step": 2.0}
 

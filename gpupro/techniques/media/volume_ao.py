@@ -350,7 +350,7 @@ SHADING_PARAMS = (
 )
 COUNTERS = (Counter("voxels", "voxels of the AO volume, N³"),
             Counter("shells", "cube shells n combined per voxel"),
-            Counter("march_steps", "ray-march samples with a positive length, over all pixels"))
+            Counter("march_steps", "ray-march samples with a positive length, over all pixels", headline=True))
 
 
 register(Technique(

@@ -521,7 +521,7 @@ PARAMS = (
 )
 MEDIUM_COUNTERS = (
     Counter("march_steps", "accumulation steps: froxels (one per slice per column), or pixels × steps"),
-    Counter("light_evaluations", "light-sample evaluations: (froxels or march samples) × lights (float32)"),
+    Counter("light_evaluations", "light-sample evaluations: (froxels or march samples) × lights (float32)", headline=True),
 )
 
 register(Technique(

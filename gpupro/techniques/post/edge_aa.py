@@ -140,7 +140,7 @@ register(Technique(
         Param("depth_temperature", 0.0, "world units", "τ_d of the depth steps' relaxation σ(x / τ_d); 0: the "
                                                        "listing's step", lower=0.0),
     ),
-    counters=(Counter("blended_pixels", "pixels with an edge weight above 0 (int32)"),
+    counters=(Counter("blended_pixels", "pixels with an edge weight above 0 (int32)", headline=True),
               Counter("mean_edge_weight", "the mean edge weight over the image")),
     notes=("The listing's e_weights and e_kernel values are not printed: w_n = w_d = 1/4 (fixed) and k = 1/2 are "
            "this project's choices. Empty pixels are the far plane facing the camera. The temperatures relax the "

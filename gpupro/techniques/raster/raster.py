@@ -84,7 +84,7 @@ register(Technique(
     ),
     counters=(
         Counter("triangles", "triangles submitted"),
-        Counter("triangles_after_culling", "triangles left after back-face, zero-area and frustum culling"),
+        Counter("triangles_after_culling", "triangles left after back-face, zero-area and frustum culling", headline=True),
         Counter("tiles_overflowed", "tiles with more triangles than tile_capacity"),
         Counter("pair_overflow", "candidate pairs past pair_capacity in the first binning pass"),
         Counter("nonfinite_triangles", "triangles skipped for NaN or infinite positions"),
@@ -103,6 +103,6 @@ register(Technique(
     apply=apply_reference,
     outputs=FRAGMENTS,
     options=(SAMPLES, CULL),
-    counters=(Counter("pixel_triangle_tests", "triangles × pixels tested"),
+    counters=(Counter("pixel_triangle_tests", "triangles × pixels tested", headline=True),
               Counter("invalid_faces", "faces skipped for a vertex index outside the mesh"), TRANSLUCENT_TRIANGLES),
 ))

@@ -116,7 +116,7 @@ OPTIONS = (
 )
 COUNTERS = (
     Counter("translucent_triangles", "triangles whose material has opacity < 1 (the ones peeled)"),
-    Counter("translucent_fragments", "translucent fragments kept in the K layers"),
+    Counter("translucent_fragments", "translucent fragments kept in the K layers", headline=True),
     Counter("layer_overflow", "pixels with a translucent fragment past layer K in front of the opaque surface"),
 )
 CAPACITIES = (Capacity("layer_capacity", "layer_overflow", "translucent layers per pixel; fragments past the last "

@@ -45,7 +45,8 @@ register(Technique(
                "receiver offset along its normal, in units of pcf/2 texels (a step function of it: static)"),
         Option("cull_backfaces", False, BOOLEAN, "cull back faces when drawing the maps (closed scenes only)"),
     ),
-    counters=(Counter("shadow_maps_rendered", "maps drawn (6 per point light, 1 per spot or directional light)"),),
+    counters=(Counter("shadow_maps_rendered", "maps drawn (6 per point light, 1 per spot or directional light)",
+                      headline=True),),
     example_options={"resolution": 32},
     multisample=True,
 ))
