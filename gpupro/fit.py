@@ -33,15 +33,13 @@ import numpy as np
 import optax
 from PIL import Image, ImageDraw, ImageFont
 
-from gpupro.config import ConfigError, build_pipeline, build_scene, load_config
+from gpupro.config import FIT, FIT_PARAMETER, LOSSES, ConfigError, build_pipeline, build_scene, load_config, setting
+from gpupro.config import OPTIMIZERS  # noqa: F401  (gpupro.fit.OPTIMIZERS, read by experiments/fit_lod.py)
 from gpupro.io.exr import read_exr, write_exr
 from gpupro.io.png import preview_image, to_uint8, write_png
 from gpupro.pipeline.batch import batched_frame, select_devices, shard_frames
 from gpupro.pipeline.capacity import has_lossy_capacity, render_without_overflow, say_on_stderr
 from gpupro.pipeline.graph import Pipeline
-
-LOSSES = ("l2", "l1", "relative_l2")
-OPTIMIZERS = ("adam", "adamw", "sgd", "rmsprop", "lamb")
 
 
 class FitParameter(typing.NamedTuple):
@@ -305,31 +303,18 @@ def plot_curve(values: list[float], *, size=(240, 320)) -> np.ndarray:
 
 
 def _parameters_from(config: dict) -> tuple[list[FitParameter], list]:
+    """The ``[[fit.parameters]]`` of a checked config (:data:`gpupro.config.FIT_PARAMETER`) and their ``init`` values."""
     source = config["_source"]
     entries = config["fit"].get("parameters", [])
-    if not isinstance(entries, list) or not entries:
+    if not entries:
         raise ConfigError(f"{source}: fit.parameters: expected a non-empty list of tables")
     parameters, inits = [], []
     for i, entry in enumerate(entries):
-        unknown = set(entry) - {"path", "indices", "lower", "upper", "init"}
-        if unknown or "path" not in entry:
-            raise ConfigError(f"{source}: fit.parameters[{i}]: needs 'path'; allowed keys: path, indices, lower, upper, init"
-                              + (f"; unknown {sorted(unknown)}" if unknown else ""))
-        where = f"{source}: fit.parameters[{i}]"
-        if not isinstance(entry["path"], str):
-            raise ConfigError(f"{where}.path: expected a string, got {entry['path']!r}")
+        if "path" not in entry:
+            raise ConfigError(f"{source}: fit.parameters[{i}]: needs 'path'")
         indices = entry.get("indices")
-        if indices is not None and not (isinstance(indices, list) and indices
-                                        and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in indices)):
-            raise ConfigError(f"{where}.indices: expected a non-empty list of non-negative integers, got {indices!r}")
-        for bound in ("lower", "upper"):
-            value = entry.get(bound, 0.0)
-            if not isinstance(value, (int, float)) or isinstance(value, bool):
-                raise ConfigError(f"{where}.{bound}: expected a number, got {value!r}")
-        if "init" in entry and not np.issubdtype(np.asarray(entry["init"]).dtype, np.number):
-            raise ConfigError(f"{where}.init: expected a number or a (nested) list of numbers, got {entry['init']!r}")
         parameters.append(FitParameter(entry["path"], tuple(indices) if indices is not None else None,
-                                       entry.get("lower", -math.inf), entry.get("upper", math.inf)))
+                                       setting(entry, FIT_PARAMETER, "lower"), setting(entry, FIT_PARAMETER, "upper")))
         inits.append(entry.get("init"))
     return parameters, inits
 
@@ -351,22 +336,7 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     section = config.get("fit")
     if not section:
         raise ConfigError(f"{source}: no [fit] section")
-    allowed = {"buffer", "loss", "optimizer", "learning_rate", "steps", "target", "target_config", "target_buffer",
-               "target_overrides", "parameters"}
-    unknown = set(section) - allowed
-    if unknown:
-        raise ConfigError(f"{source}: unknown key 'fit.{sorted(unknown)[0]}' (allowed here: {', '.join(sorted(allowed))})")
-    buffer = section.get("buffer", "hdr")
-    optimizer_name = section.get("optimizer", "adam")
-    if optimizer_name not in OPTIMIZERS:
-        raise ConfigError(f"{source}: fit.optimizer: expected one of {list(OPTIMIZERS)}, got {optimizer_name!r}")
-    if section.get("loss", "l2") not in LOSSES:
-        raise ConfigError(f"{source}: fit.loss: expected one of {list(LOSSES)}, got {section['loss']!r}")
-    steps, rate = section.get("steps", 100), section.get("learning_rate", 0.05)
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise ConfigError(f"{source}: fit.steps: expected an integer >= 1, got {steps!r}")
-    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not rate > 0:
-        raise ConfigError(f"{source}: fit.learning_rate: expected a number > 0, got {rate!r}")
+    buffer, loss_kind = setting(section, FIT, "buffer"), setting(section, FIT, "loss")
     scene = build_scene(config)
     pipeline, params = build_pipeline(config)
     if buffer not in pipeline.buffers:
@@ -384,23 +354,20 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         target = images[buffer]
         truth = None
     elif "target_config" in section:
-        target_overrides = section.get("target_overrides", [])
-        if not (isinstance(target_overrides, list) and all(isinstance(o, str) for o in target_overrides)):
-            raise ConfigError(f"{source}: fit.target_overrides: expected a list of 'key=value' strings, "
-                              f"got {target_overrides!r}")
         camera = [f"camera.{key}={json.dumps(value)}" for key, value in config.get("camera", {}).items()]
         target = _render_target(pathlib.Path(source).parent / section["target_config"],
-                                section.get("target_buffer", buffer), camera + target_overrides, progress)
+                                section.get("target_buffer", buffer), camera + setting(section, FIT, "target_overrides"),
+                                progress)
         truth = None
     else:
         target = pipeline.frame((buffer,))(params, scene)[buffer]
     start = [t if init is None else jnp.broadcast_to(jnp.asarray(init, jnp.float32), t.shape) for t, init in zip(_gather(parameters, params, scene), inits)]
     start_params, start_scene = _scatter(parameters, start, params, scene)
-    loss_kind = section.get("loss", "l2")
 
     begin = time.perf_counter()
     result = fit(pipeline, start_params, start_scene, target, parameters, buffer=buffer, loss=loss_kind,
-                 optimizer=getattr(optax, optimizer_name)(rate), steps=steps, progress=progress)
+                 optimizer=getattr(optax, setting(section, FIT, "optimizer"))(setting(section, FIT, "learning_rate")),
+                 steps=setting(section, FIT, "steps"), progress=progress)
     seconds = time.perf_counter() - begin
     frame = pipeline.frame((buffer,))
     before = frame(start_params, start_scene)[buffer]

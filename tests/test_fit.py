@@ -204,18 +204,21 @@ def fit_config(tmp_path, old=None, new=None):
 
 @pytest.mark.parametrize("overrides, change, message", [
     (['fit.steps="100"'], None, r"fit\.steps: expected an integer >= 1, got '100'"),
-    (["fit.learning_rate=0"], None, r"fit\.learning_rate: expected a number > 0"),
+    (["fit.learning_rate=0"], None, r"fit\.learning_rate: expected a finite number > 0"),
     (["fit.loss=l3"], None, r"fit\.loss: expected one of"),
     (["fit.optimizer=newton"], None, r"fit\.optimizer: expected one of"),
     (["fit.lr=0.1"], None, r"unknown key 'fit\.lr'"),
     ([], ('path = "scene.lights.color"', 'path = "scene.lights.nope"'),
      r"fit\.parameters: fit parameter path 'scene\.lights\.nope': no 'nope' there"),
     ([], ('path = "scene.lights.color"', 'path = "params.nope.x"'), r"fit\.parameters: .*'params\.nope\.x'"),
-    ([], ("init = 0.5", "start = 0.5"), r"fit\.parameters\[1\]: .*unknown \['start'\]"),
+    ([], ("init = 0.5", "start = 0.5"), r"unknown key 'fit\.parameters\[1\]\.start' \(allowed here: .*init.*\)$"),
+    ([], ("init = 0.5", "inti = 0.5"), r"unknown key 'fit\.parameters\[1\]\.inti' .*; did you mean 'init'\?$"),
+    ([], ('path = "scene.lights.color"', 'indices = [0]'), r"fit\.parameters\[0\]: needs 'path'"),
 ])
 def test_bad_fit_section_is_refused_naming_file_and_key(tmp_path, overrides, change, message):
     path = fit_config(tmp_path, *(change or ()))
-    with pytest.raises(ConfigError, match=re.escape(str(path)) + ": " + message):
+    named = "".join(f"--set {re.escape(text)}: " for text in overrides)  # the override that brings the error in
+    with pytest.raises(ConfigError, match=re.escape(str(path)) + ": " + named + message):
         fit_experiment(path, out_dir=tmp_path / "out", overrides=overrides, progress=None)
     assert not (tmp_path / "out").exists()
 
