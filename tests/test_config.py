@@ -2,6 +2,7 @@
 overrides, configs read as data, and the scenes, lights, cameras and pipelines built from them."""
 
 import ast
+import io
 import math
 import pathlib
 import re
@@ -164,6 +165,24 @@ def test_shipped_configs_load_and_build(path):
     assert config["name"] == path.stem
     assert scene.lights.count > 0
     assert any(b == "hdr" or b.startswith("hdr_") for b in pipeline.outputs)
+
+
+# Each shipped config rendered as `gpupro run` renders it, at its own size and over its whole camera path:
+# how many lights a tile lists or how many particles a pixel meets depends on the resolution, so no smaller
+# frame shows that the full one does not grow. Marked slow: a compile per config at full size, for the 17
+# configs with lossy capacities 450 s of CPU time (15 minutes' wall time on a loaded 2-core CPU; clouds 150 s).
+@pytest.mark.slow
+@pytest.mark.parametrize("path", RUN_CONFIGS, ids=lambda p: p.name)
+def test_shipped_configs_render_without_capacity_growth(path, tmp_path):
+    from gpupro.pipeline.capacity import capacities, has_lossy_capacity
+    from gpupro.runner import run_experiment
+
+    _, _, (pipeline, _) = build(path)
+    if not has_lossy_capacity(pipeline):
+        pytest.skip("no lossy capacity in use: nothing to grow")
+    said = io.StringIO()
+    report = run_experiment(path, out_dir=tmp_path, progress=said)
+    assert report["capacities"] == capacities(pipeline), said.getvalue()  # as written: none grew
 
 
 @pytest.mark.parametrize("text, expected", [
