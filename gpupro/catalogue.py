@@ -143,18 +143,52 @@ def _expected(check) -> str:
         return "see gpupro/config.py"
 
 
-def _config_rows(schema: dict, prefix: str = "") -> list[tuple[str, str]]:
+def _accepts(entry) -> str:
+    """What a :data:`gpupro.config.SCHEMA` rule or :class:`gpupro.config.Key` accepts, its default and doc."""
+    from gpupro.config import Key
+
+    if not isinstance(entry, Key):
+        return _expected(entry)
+    default = "" if entry.default is None else f"; default {entry.default!r}"
+    return _expected(entry.rule) + default + (f"; {entry.doc}" if entry.doc else "")
+
+
+def _scene_option_rows() -> list[tuple[str, str]]:
+    """``scene.options.<option>`` of every procedural scene: its type and default, from the signature
+    of the scene function that takes it (:func:`gpupro.config.scene_options`)."""
+    from gpupro.config import scene_options
+    from gpupro.scene.procedural import SCENES
+
     rows = []
-    for key, rule in schema.items():
-        if isinstance(rule, dict):
-            rows += _config_rows(rule, f"{prefix}{key}.")
+    for scene in SCENES:
+        for option in scene_options(scene).values():
+            kind = f"{option.annotation}; " if option.annotation is not inspect.Parameter.empty else ""
+            rows.append((f"scene.options.{option.name}", f"{kind}default {option.default!r} (scene.name = {scene!r})"))
+    return rows
+
+
+def _config_rows(schema: dict, prefix: str = "") -> list[tuple[str, str]]:
+    from gpupro.config import Named, Tables
+
+    rows = []
+    for key, entry in schema.items():
+        while isinstance(entry, Named):  # pipeline.inputs.<pass>.<input>
+            key, entry = f"{key}.<{entry.what}>", entry.value
+        if isinstance(entry, dict):
+            rows += _config_rows(entry, f"{prefix}{key}.")
+        elif isinstance(entry, Tables):
+            rows.append((f"{prefix}{key}", "a list of tables (TOML [[" + prefix + key + "]]), each with the keys below"))
+            rows += _config_rows(entry.schema, f"{prefix}{key}[].")
         else:
-            rows.append((f"{prefix}{key}", _expected(rule)))
+            rows.append((f"{prefix}{key}", _accepts(entry)))
+            if prefix + key == "scene.options":
+                rows += _scene_option_rows()
     return rows
 
 
 def config_reference() -> str:
-    """Every key of an experiment config with what it accepts, as an aligned text table."""
+    """Every key of an experiment config with what it accepts (and its default where it has one), as an
+    aligned text table."""
     from gpupro.config import SCHEMA
 
     return _align([("key", "accepts")] + _config_rows(SCHEMA))

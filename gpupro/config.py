@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 import math
 import pathlib
 import re
 import tomllib
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -34,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.pipeline.graph import Pipeline
-from gpupro.pipeline.passes import make_pass
+from gpupro.pipeline.passes import did_you_mean, make_pass, unknown_technique
 from gpupro.technique import OptionError, registered
 from gpupro.scene import lights as lights_module
 from gpupro.scene.camera import PROJECTIONS, Camera, make_camera
@@ -167,13 +169,69 @@ def _points(v):
     return ok, "a list of at least 2 points [x, y, z] of finite numbers" + _float32_note(v)
 
 
-def _light_list(v):
-    return isinstance(v, list) and all(isinstance(x, dict) for x in v), "a list of tables"
+def _any(v):
+    return True, "what the technique's specification accepts (its page in docs/techniques/)"
 
 
-_LIGHT = {"position": _vector(3), "direction": _vector(3), "color": _vector(3), "intensity": number_rule(0.0),
-          "range": number_rule(0.0, strict_lo=True), "inner_angle_degrees": number_rule(0.0, 90.0),
-          "outer_angle_degrees": number_rule(0.0, 90.0), "length": number_rule(0.0)}
+def _bound(v):
+    return _is_number(v) and not math.isnan(v), "a number (inf and -inf allowed)"
+
+
+def _indices(v):
+    ok = isinstance(v, list) and v and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in v)
+    return bool(ok), "a non-empty list of non-negative integers"
+
+
+def _numbers(v):
+    try:
+        ok = bool(np.issubdtype(np.asarray(v).dtype, np.number))
+    except ValueError:  # a ragged list
+        ok = False
+    return ok, "a number or a (nested) list of numbers"
+
+
+@dataclasses.dataclass(frozen=True)
+class Key:
+    """A :data:`SCHEMA` entry: a key's ``rule`` (as in :func:`check_table`), the ``default`` the code
+    uses when the key is left out (None: the key has none, or ``doc`` says what happens) and a ``doc``
+    for the reference (``gpupro list --config``)."""
+
+    rule: Callable[[Any], tuple[bool, str]]
+    default: Any = None
+    doc: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Tables:
+    """A :data:`SCHEMA` entry: a list of tables (TOML's ``[[key]]``), each checked against ``schema``."""
+
+    schema: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class Named:
+    """A :data:`SCHEMA` entry: a table whose keys the config names (passes, inputs), each value checked
+    against the entry ``value``; ``what`` stands for those keys in the reference (``pipeline.inputs.<pass>``)."""
+
+    what: str
+    value: Any
+
+
+def setting(table: dict, schema: dict, name: str):
+    """``table[name]``, or the default that ``schema[name]`` (a :class:`Key`) declares when it is left out."""
+    return table.get(name, schema[name].default)
+
+
+_LIGHT = {"position": Key(_vector(3), [0.0, 0.0, 0.0], "world units; a capsule's segment centre"),
+          "direction": Key(_vector(3), [0.0, -1.0, 0.0], "the way the light shines (a spot's axis, the direction a "
+                                                         "directional light travels, a capsule's axis); normalised"),
+          "color": Key(_vector(3), [1.0, 1.0, 1.0], "multiplied by intensity"),
+          "intensity": Key(number_rule(0.0), 1.0, "W/sr (W/m² for a directional light)"),
+          "range": Key(number_rule(0.0, strict_lo=True), 10.0, "radius of influence, world units (around the segment "
+                                                                "for a capsule)"),
+          "inner_angle_degrees": Key(number_rule(0.0, 90.0), 30.0, "cone half-angle of full intensity"),
+          "outer_angle_degrees": Key(number_rule(0.0, 90.0), 45.0, "cone half-angle beyond which no light falls"),
+          "length": Key(number_rule(0.0), 0.0, "half-length of the segment position ± length · direction, world units")}
 LIGHT_KEYS = {
     "point": {k: _LIGHT[k] for k in ("position", "color", "intensity", "range")},
     "spot": {k: _LIGHT[k] for k in _LIGHT if k != "length"},
@@ -190,12 +248,44 @@ GENERATOR_KEYS = {"uniform_in_box": {"count", "range", "intensity", "seed", "whi
 """The ``[lights]`` keys each generator reads; "scene" and "none" read none of them, so
 ``--set lights.count=64`` on a config whose lights are the scene's is refused, not ignored."""
 
+LOSSES = ("l2", "l1", "relative_l2")
+"""``fit.loss`` names (:func:`gpupro.fit.image_loss`)."""
+
+OPTIMIZERS = ("adam", "adamw", "sgd", "rmsprop", "lamb")
+"""``fit.optimizer`` names: optax optimizers taking the learning rate as their first argument."""
+
+FIT_PARAMETER = {
+    "path": Key(string_rule, doc="required: params.<pass>.<name> or scene.<field>.<field>, e.g. scene.lights.color"),
+    "indices": Key(_indices, doc="entries along the first axis to fit; default all"),
+    "lower": Key(_bound, -math.inf, "bound applied after every step"),
+    "upper": Key(_bound, math.inf, "bound applied after every step"),
+    "init": Key(_numbers, doc="start value (broadcast); default the config's value"),
+}
+"""Keys of a ``[[fit.parameters]]`` entry (:class:`gpupro.fit.FitParameter`)."""
+
+FIT = {
+    "buffer": Key(string_rule, "hdr", "the buffer fitted to the target"),
+    "loss": Key(choice_rule(*LOSSES), "l2"),
+    "optimizer": Key(choice_rule(*OPTIMIZERS), "adam", "an optax optimizer"),
+    "learning_rate": Key(number_rule(0.0, strict_lo=True), 0.05),
+    "steps": Key(integer_rule(1), 100),
+    "target": Key(string_rule, doc="an EXR file (relative to the config) holding fit.buffer"),
+    "target_config": Key(string_rule, doc="a config (relative to this one) whose render is the target; "
+                                          "without target or target_config, the config as written"),
+    "target_buffer": Key(string_rule, doc="the buffer of target_config's render; default fit.buffer"),
+    "target_overrides": Key(_strings, [], "--set overrides (key=value) of target_config"),
+    "parameters": Tables(FIT_PARAMETER),
+}
+"""Keys of ``[fit]`` (``gpupro fit``, :func:`gpupro.fit.fit_experiment`)."""
+
 SCHEMA: dict[str, Any] = {
     "name": _file_stem,
     "description": string_rule,
     "frames": integer_rule(1, MAX_FRAMES, "each frame's camera is made up front"),
     "repeats": integer_rule(1),
-    "scene": {"name": choice_rule(*SCENES), "file": string_rule, "options": table_rule},
+    "scene": {"name": choice_rule(*SCENES), "file": string_rule,
+              "options": Key(table_rule, doc="keyword options of the procedural scene scene.name: "
+                                             "scene.options.<option> below")},
     "camera": {"eye": _vector(3), "target": _vector(3), "up": _vector(3), "fov_y_degrees": number_rule(0.0, 179.0, strict_lo=True),
                "near": number_rule(0.0, strict_lo=True), "far": number_rule(0.0, strict_lo=True), "resolution": _resolution,
                "projection": choice_rule(*PROJECTIONS), "ortho_height": number_rule(0.0, strict_lo=True),
@@ -205,34 +295,57 @@ SCHEMA: dict[str, Any] = {
                "range": number_rule(0.0, strict_lo=True), "intensity": number_rule(0.0),
                "seed": integer_rule(0, MAX_SEED, "jax.random.PRNGKey keeps 32 bits"), "white": _boolean,
                "keep_scene_lights": _boolean, "box_lo": _vector(3), "box_hi": _vector(3), "path": _points,
-               "offset": number_rule(0.0), "spot_fraction": number_rule(0.0, 1.0), "point": _light_list, "spot": _light_list, "directional": _light_list,
-               "capsule": _light_list},
-    "pipeline": {"passes": _strings, "options": table_rule, "params": table_rule, "inputs": table_rule},
-    "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean, "preview": string_rule},
-    "fit": table_rule,
+               "offset": number_rule(0.0), "spot_fraction": number_rule(0.0, 1.0),
+               **{kind: Tables(keys) for kind, keys in LIGHT_KEYS.items()}},
+    "pipeline": {"passes": _strings, "options": Named("pass", Named("option", Key(_any))),
+                 "params": Named("pass", Named("name", Key(_any))),
+                 "inputs": Named("pass", Named("input", Key(string_rule, doc="the buffer the pass reads as its input "
+                                                                            "<input>, e.g. hdr = \"hdr_fog\"")))},
+    "outputs": {"buffers": _strings, "exr": _boolean, "half": _boolean,
+                "preview": Key(string_rule, doc="the buffer drawn in <name>.png, one of outputs.buffers, or \"none\"; "
+                                                "default ldr, else hdr")},
+    "fit": FIT,
 }
-"""Allowed keys: nested dicts are tables, functions check a value and say what they expected."""
+"""Allowed keys: nested dicts are tables, :class:`Tables` lists of tables, :class:`Named` tables of
+named entries; functions (or :class:`Key`) check a value and say what they expected."""
 
 DEFAULT_PASSES = ["raster", "gbuffer", "deferred", "post"]
 
 
 def check_table(table: dict, schema: dict, prefix: str, source: str):
-    """Checks ``table`` against ``schema`` (a dict of nested schemas and rules: functions of a value
-    returning ``(ok, what was expected)``); :class:`ConfigError` names ``source`` and the key path
-    ``prefix + key`` of the first unknown key or refused value."""
+    """Checks ``table`` against ``schema`` (a dict of nested schemas, :class:`Tables`, :class:`Named`,
+    :class:`Key` and rules: functions of a value returning ``(ok, what was expected)``);
+    :class:`ConfigError` names ``source`` and the key path ``prefix + key`` of the first unknown key
+    (and the allowed keys closest to it) or refused value."""
     if not isinstance(table, dict):
         raise ConfigError(f"{source}: {prefix.rstrip('.') or 'config'}: expected a table")
     for key, value in table.items():
         path = prefix + key
         if key not in schema:
-            raise ConfigError(f"{source}: unknown key '{path}' (allowed here: {', '.join(sorted(schema))})")
-        rule = schema[key]
-        if isinstance(rule, dict):
-            check_table(value, rule, path + ".", source)
-        else:
-            ok, expected = rule(value)
-            if not ok:
-                raise ConfigError(f"{source}: {path}: expected {expected}, got {value!r}")
+            hint = did_you_mean(key, schema)
+            raise ConfigError(f"{source}: unknown key '{path}' (allowed here: {', '.join(sorted(schema))})"
+                              + (f"; {hint}" if hint else ""))
+        _check_value(value, schema[key], path, source)
+
+
+def _check_value(value, rule, path: str, source: str):
+    """Checks the value at ``path`` against its :data:`SCHEMA` entry ``rule``."""
+    if isinstance(rule, dict):
+        check_table(value, rule, path + ".", source)
+    elif isinstance(rule, Tables):
+        if not (isinstance(value, list) and all(isinstance(x, dict) for x in value)):
+            raise ConfigError(f"{source}: {path}: expected a list of tables, got {value!r}")
+        for i, entry in enumerate(value):
+            check_table(entry, rule.schema, f"{path}[{i}].", source)
+    elif isinstance(rule, Named):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: {path}: expected a table")
+        for name, entry in value.items():
+            _check_value(entry, rule.value, f"{path}.{name}", source)
+    else:
+        ok, expected = (rule.rule if isinstance(rule, Key) else rule)(value)
+        if not ok:
+            raise ConfigError(f"{source}: {path}: expected {expected}, got {value!r}")
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -354,16 +467,11 @@ def check_config(config: dict, *, source: str = "config", overrides=(), base_dir
     passes = config.get("pipeline", {}).get("passes", DEFAULT_PASSES)
     for name in passes:
         if name not in registered():
-            raise ConfigError(f"{source}: pipeline.passes: unknown pass '{name}' (known: {', '.join(registered())})")
+            raise ConfigError(f"{source}: pipeline.passes: {unknown_technique(name, 'pass')}")
     for section in ("options", "params", "inputs"):
-        for name, value in config.get("pipeline", {}).get(section, {}).items():
+        for name in config.get("pipeline", {}).get(section, {}):
             if name not in passes:
                 raise ConfigError(f"{source}: pipeline.{section}.{name}: no such pass in pipeline.passes {passes}")
-            if not isinstance(value, dict):
-                raise ConfigError(f"{source}: pipeline.{section}.{name}: expected a table")
-    for kind in LIGHT_KEYS:
-        for i, light in enumerate(config.get("lights", {}).get(kind, [])):
-            check_table(light, LIGHT_KEYS[kind], f"lights.{kind}[{i}].", source)
     _check_generator_keys(config.get("lights", {}), source)
     config["_source"] = source
     return config
@@ -387,18 +495,14 @@ def _explicit_lights(section: dict, source: str):
         entries = section.get(kind, [])
         if not entries:
             continue
-        color = [np.asarray(e.get("color", [1.0, 1.0, 1.0])) * e.get("intensity", 1.0) for e in entries]
+        # every kind's defaults, also for keys the kind does not read (make_lights ignores them)
+        value = lambda key: [setting(e, _LIGHT, key) for e in entries]
+        color = [np.asarray(c) * i for c, i in zip(value("color"), value("intensity"))]
         try:
             groups.append(lights_module.make_lights(
-                [code] * len(entries),
-                position=[e.get("position", [0.0, 0.0, 0.0]) for e in entries],
-                direction=[e.get("direction", [0.0, -1.0, 0.0]) for e in entries],
-                color=color,
-                range=[e.get("range", 10.0) for e in entries],
-                inner_angle_degrees=[e.get("inner_angle_degrees", 30.0) for e in entries],
-                outer_angle_degrees=[e.get("outer_angle_degrees", 45.0) for e in entries],
-                length=[e.get("length", 0.0) for e in entries],
-            ))
+                [code] * len(entries), position=value("position"), direction=value("direction"), color=color,
+                range=value("range"), inner_angle_degrees=value("inner_angle_degrees"),
+                outer_angle_degrees=value("outer_angle_degrees"), length=value("length")))
         except ValueError as error:
             raise ConfigError(f"{source}: lights.{kind}: {error}") from None
     return groups
@@ -447,6 +551,14 @@ def _camera_arguments(camera: Camera) -> dict:
                 resolution=camera.resolution, projection=camera.projection, ortho_height=float(camera.ortho_height))
 
 
+def scene_options(name: str) -> dict[str, inspect.Parameter]:
+    """The ``scene.options`` a config may give the procedural scene ``name``: the keyword parameters of
+    its function in :data:`gpupro.scene.procedural.SCENES` but ``resolution`` and ``lights``, which
+    ``camera.resolution`` and ``[lights]`` set."""
+    parameters = inspect.signature(SCENES[name]).parameters
+    return {k: p for k, p in parameters.items() if k not in ("resolution", "lights")}
+
+
 def build_scene(config: dict) -> Scene:
     """Scene (procedural, or from ``scene.file`` by :func:`gpupro.scene.loaders.load_scene` with its
     default camera and lights), camera overrides and lights of a checked config."""
@@ -455,6 +567,12 @@ def build_scene(config: dict) -> Scene:
     camera_cfg = {k: v for k, v in config.get("camera", {}).items() if k != "path"}
     resolution = tuple(camera_cfg.pop("resolution", (64, 64)))
     if "name" in section:
+        known = scene_options(section["name"])
+        for key in section.get("options", {}):
+            if key not in known:
+                hint = did_you_mean(key, known)
+                raise ConfigError(f"{source}: scene.options.{key}: not an option of scene {section['name']!r} "
+                                  f"(its options: {', '.join(known) or 'none'})" + (f"; {hint}" if hint else ""))
         try:
             scene = by_name(section["name"], resolution=resolution, **section.get("options", {}))
         except (TypeError, ValueError, OverflowError, MemoryError) as error:  # memory: e.g. segments = 10**12

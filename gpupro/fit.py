@@ -35,17 +35,15 @@ import optax
 from PIL import Image, ImageDraw, ImageFont
 
 from gpupro.compilation import compile_and_say, use_compilation_cache
-from gpupro.config import ConfigError, build_pipeline, build_scene, load_config
+from gpupro.config import FIT, FIT_PARAMETER, LOSSES, ConfigError, build_pipeline, build_scene, load_config, setting
+from gpupro.config import OPTIMIZERS  # noqa: F401  (gpupro.fit.OPTIMIZERS, read by experiments/fit_lod.py)
 from gpupro.io.exr import read_exr, write_exr
-from gpupro.io.png import preview_image, to_uint8, write_png
+from gpupro.io.png import preview_image, write_png
 from gpupro.pipeline.batch import batched_frame, select_devices, shard_frames
 from gpupro.pipeline.capacity import has_lossy_capacity, render_without_overflow, say_on_stderr
 from gpupro.pipeline.graph import Pipeline
 from gpupro.scene.scene import Scene
 from gpupro.scene.validate import check_scene
-
-LOSSES = ("l2", "l1", "relative_l2")
-OPTIMIZERS = ("adam", "adamw", "sgd", "rmsprop", "lamb")
 
 
 class FitParameter(typing.NamedTuple):
@@ -338,39 +336,26 @@ def plot_curve(values: list[float], *, size=(240, 320)) -> np.ndarray:
 
 
 def _parameters_from(config: dict) -> tuple[list[FitParameter], list]:
+    """The ``[[fit.parameters]]`` of a checked config (:data:`gpupro.config.FIT_PARAMETER`) and their ``init`` values."""
     source = config["_source"]
     entries = config["fit"].get("parameters", [])
-    if not isinstance(entries, list) or not entries:
+    if not entries:
         raise ConfigError(f"{source}: fit.parameters: expected a non-empty list of tables")
     parameters, inits = [], []
     for i, entry in enumerate(entries):
-        unknown = set(entry) - {"path", "indices", "lower", "upper", "init"}
-        if unknown or "path" not in entry:
-            raise ConfigError(f"{source}: fit.parameters[{i}]: needs 'path'; allowed keys: path, indices, lower, upper, init"
-                              + (f"; unknown {sorted(unknown)}" if unknown else ""))
-        where = f"{source}: fit.parameters[{i}]"
-        if not isinstance(entry["path"], str):
-            raise ConfigError(f"{where}.path: expected a string, got {entry['path']!r}")
+        if "path" not in entry:
+            raise ConfigError(f"{source}: fit.parameters[{i}]: needs 'path'")
         indices = entry.get("indices")
-        if indices is not None and not (isinstance(indices, list) and indices
-                                        and all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in indices)):
-            raise ConfigError(f"{where}.indices: expected a non-empty list of non-negative integers, got {indices!r}")
-        for bound in ("lower", "upper"):
-            value = entry.get(bound, 0.0)
-            if not isinstance(value, (int, float)) or isinstance(value, bool):
-                raise ConfigError(f"{where}.{bound}: expected a number, got {value!r}")
-        if "init" in entry and not np.issubdtype(np.asarray(entry["init"]).dtype, np.number):
-            raise ConfigError(f"{where}.init: expected a number or a (nested) list of numbers, got {entry['init']!r}")
         parameters.append(FitParameter(entry["path"], tuple(indices) if indices is not None else None,
-                                       entry.get("lower", -math.inf), entry.get("upper", math.inf)))
+                                       setting(entry, FIT_PARAMETER, "lower"), setting(entry, FIT_PARAMETER, "upper")))
         inits.append(entry.get("init"))
     return parameters, inits
 
 
 def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.stderr) -> dict:
     """``gpupro fit``: fits the ``[fit]`` section of a config; writes loss.csv, loss.png, comparison.png
-    (target | before | after), comparison.exr (those buffers), error.png (|after − target|) and fitted.json
-    (with the loss and mean absolute error before and after fitting).
+    (target | before | after), comparison.exr (those buffers), error.png (|after − target| on a colour scale
+    drawn with its range) and fitted.json (with the loss and mean absolute error before and after fitting).
 
     The target is ``fit.target`` (an EXR file holding ``fit.buffer``); or ``fit.target_config``, another
     config (a path relative to this one, e.g. a path tracer's) whose render of ``fit.target_buffer``
@@ -385,22 +370,7 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
     section = config.get("fit")
     if not section:
         raise ConfigError(f"{source}: no [fit] section")
-    allowed = {"buffer", "loss", "optimizer", "learning_rate", "steps", "target", "target_config", "target_buffer",
-               "target_overrides", "parameters"}
-    unknown = set(section) - allowed
-    if unknown:
-        raise ConfigError(f"{source}: unknown key 'fit.{sorted(unknown)[0]}' (allowed here: {', '.join(sorted(allowed))})")
-    buffer = section.get("buffer", "hdr")
-    optimizer_name = section.get("optimizer", "adam")
-    if optimizer_name not in OPTIMIZERS:
-        raise ConfigError(f"{source}: fit.optimizer: expected one of {list(OPTIMIZERS)}, got {optimizer_name!r}")
-    if section.get("loss", "l2") not in LOSSES:
-        raise ConfigError(f"{source}: fit.loss: expected one of {list(LOSSES)}, got {section['loss']!r}")
-    steps, rate = section.get("steps", 100), section.get("learning_rate", 0.05)
-    if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
-        raise ConfigError(f"{source}: fit.steps: expected an integer >= 1, got {steps!r}")
-    if not isinstance(rate, (int, float)) or isinstance(rate, bool) or not rate > 0:
-        raise ConfigError(f"{source}: fit.learning_rate: expected a number > 0, got {rate!r}")
+    buffer, loss_kind = setting(section, FIT, "buffer"), setting(section, FIT, "loss")
     scene = build_scene(config)
     pipeline, params = build_pipeline(config)
     if buffer not in pipeline.buffers:
@@ -420,23 +390,20 @@ def fit_experiment(config_path, *, out_dir="out", overrides=(), progress=sys.std
         target = images[buffer]
         truth = None
     elif "target_config" in section:
-        target_overrides = section.get("target_overrides", [])
-        if not (isinstance(target_overrides, list) and all(isinstance(o, str) for o in target_overrides)):
-            raise ConfigError(f"{source}: fit.target_overrides: expected a list of 'key=value' strings, "
-                              f"got {target_overrides!r}")
         camera = [f"camera.{key}={json.dumps(value)}" for key, value in config.get("camera", {}).items()]
         target = _render_target(pathlib.Path(source).parent / section["target_config"],
-                                section.get("target_buffer", buffer), camera + target_overrides, progress)
+                                section.get("target_buffer", buffer), camera + setting(section, FIT, "target_overrides"),
+                                progress)
         truth = None
     else:
         target = pipeline.frame((buffer,))(params, scene)[buffer]
     start = [t if init is None else jnp.broadcast_to(jnp.asarray(init, jnp.float32), t.shape) for t, init in zip(_gather(parameters, params, scene), inits)]
     start_params, start_scene = _scatter(parameters, start, params, scene)
-    loss_kind = section.get("loss", "l2")
 
     begin = time.perf_counter()
     result = fit(pipeline, start_params, start_scene, target, parameters, buffer=buffer, loss=loss_kind,
-                 optimizer=getattr(optax, optimizer_name)(rate), steps=steps, progress=progress)
+                 optimizer=getattr(optax, setting(section, FIT, "optimizer"))(setting(section, FIT, "learning_rate")),
+                 steps=setting(section, FIT, "steps"), progress=progress)
     seconds = time.perf_counter() - begin
     frame = pipeline.frame((buffer,))
     before = frame(start_params, start_scene)[buffer]
@@ -483,6 +450,14 @@ def _render_target(config_path: pathlib.Path, buffer: str, overrides: list[str],
 _PLOT_LEFT, _PLOT_TOP, _PLOT_RIGHT, _PLOT_BOTTOM = 44, 20, 12, 32  # margins of plot_curve's axes, pixels
 _CURVE, _GRID = (200, 30, 30), (225, 225, 225)
 _LABEL_HEIGHT, _PANEL_GAP = 14, 4  # comparison.png: the strip above each panel, the gap between panels
+_BAR_HEIGHT = 12  # error.png: the colour scale's bar under the map
+
+MIN_IMAGE_SIDE = 256
+"""The longer side, in pixels, below which comparison.png's panels and error.png's map are enlarged."""
+
+VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float32)
+"""error.png's colour scale: matplotlib's viridis (van der Walt and Smith, 2015) at 0, 1/4, 1/2, 3/4 and 1,
+interpolated linearly (its luminance rises monotonically from dark violet to yellow), uint8 RGB [5, 3]."""
 
 
 @functools.cache
@@ -517,6 +492,43 @@ def _errors(rendered, target, loss: str) -> dict:
             "mean_absolute_error": float(jnp.mean(jnp.abs(rendered - target)))}
 
 
+def enlarged(image: np.ndarray, minimum: int = MIN_IMAGE_SIDE) -> np.ndarray:
+    """``image`` [H, W(, C)] repeated k × k per pixel (nearest neighbour) with k the smallest integer making
+    the longer side at least ``minimum`` pixels (k = 1 for images that large): [k H, k W(, C)]."""
+    k = max(1, math.ceil(minimum / max(image.shape[:2])))
+    return np.repeat(np.repeat(image, k, axis=0), k, axis=1)
+
+
+def false_colour(values: np.ndarray, top: float) -> np.ndarray:
+    """uint8 RGB [..., 3] of ``values`` [...] on the :data:`VIRIDIS` scale from 0 to ``top`` (> 0;
+    values outside [0, top] take the colour of the end they pass)."""
+    position = np.clip(np.asarray(values, np.float64) / top, 0.0, 1.0) * (len(VIRIDIS) - 1)
+    low = np.minimum(np.floor(position).astype(int), len(VIRIDIS) - 2)
+    t = (position - low)[..., None]
+    return np.round((1 - t) * VIRIDIS[low] + t * VIRIDIS[low + 1]).astype(np.uint8)
+
+
+def error_image(error: np.ndarray, title: str) -> np.ndarray:
+    """``error`` [H, W] (finite, >= 0) as uint8 RGB: the map on the :data:`VIRIDIS` scale from 0 to its
+    largest value (:func:`false_colour`), :func:`enlarged`, at the top left; under it a bar of the scale
+    over the map's width, labelled with 0 at its left end and the largest value at its right end, and
+    ``title``."""
+    error = np.asarray(error, np.float64)
+    top = float(error.max())
+    shown = enlarged(false_colour(error, top if top > 0 else 1.0))
+    h, w = shown.shape[:2]
+    image = Image.new("RGB", (w, h + _PANEL_GAP + _BAR_HEIGHT + 2 * _LABEL_HEIGHT), "white")
+    image.paste(Image.fromarray(shown), (0, 0))
+    bar = false_colour(np.linspace(0.0, 1.0, w), 1.0)
+    image.paste(Image.fromarray(np.repeat(bar[None], _BAR_HEIGHT, axis=0)), (0, h + _PANEL_GAP))
+    draw = ImageDraw.Draw(image)
+    labels = h + _PANEL_GAP + _BAR_HEIGHT + 2
+    _text(draw, 0, labels, "0")
+    _text(draw, w - 1, labels, f"{top:.3g}", "rt")
+    _text(draw, w // 2, labels + _LABEL_HEIGHT, title, "mt")
+    return np.asarray(image)
+
+
 def _side_by_side(panels: dict[str, np.ndarray]) -> np.ndarray:
     """uint8 [H, W, 3] panels in a row, each under its name, on white: uint8 [14 + H, n W + 4 (n − 1), 3]."""
     h, w = next(iter(panels.values())).shape[:2]
@@ -529,19 +541,16 @@ def _side_by_side(panels: dict[str, np.ndarray]) -> np.ndarray:
 
 
 def _write_comparison(out: pathlib.Path, buffer: str, images: dict, camera) -> list[str]:
-    """Writes comparison.png (``images`` target | before | after, previews normalised like the target),
-    comparison.exr (the three buffers) and error.png (|after − target| summed over channels, scaled so
-    the largest |before − target| is white). Returns the file names."""
+    """Writes comparison.png (``images`` target | before | after, previews normalised like the target,
+    :func:`enlarged`), comparison.exr (the three buffers) and error.png (:func:`error_image` of
+    |after − target| summed over channels). Returns the file names."""
     images = {k: np.asarray(v, np.float32) for k, v in images.items()}
     depth_range = dict(near=float(camera.near), far=float(camera.far)) if camera.projection == "perspective" else {}
-    panels = {k: preview_image(buffer, v, normalise_from=images["target"], **depth_range) for k, v in images.items()}
+    panels = {k: enlarged(preview_image(buffer, v, normalise_from=images["target"], **depth_range))
+              for k, v in images.items()}
     write_png(out / "comparison.png", _side_by_side(panels))
     write_exr(out / "comparison.exr", images)
-
-    def error(name):
-        difference = np.abs(images[name] - images["target"])
-        return difference.sum(axis=-1) if difference.ndim == 3 else difference
-
-    scale = max(float(error("before").max()), np.finfo(np.float32).tiny)
-    write_png(out / "error.png", to_uint8(error("after") / scale))
+    difference = np.abs(images["after"] - images["target"])
+    error = difference.sum(axis=-1) if difference.ndim == 3 else difference
+    write_png(out / "error.png", error_image(error, "sum over channels of |after - target|"))
     return ["comparison.png", "comparison.exr", "error.png"]

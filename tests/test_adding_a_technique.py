@@ -195,6 +195,19 @@ def test_gpupro_list_and_docs_show_its_page(tmp_path, capsys):
     assert (tmp_path / "docs" / "techniques" / f"{ID}.md").read_text() == page
 
 
+def test_the_guides_docs_step_names_every_generated_file_it_changes(tmp_path):
+    """Following the guide, ``gpupro docs docs`` changes exactly the files its step names (else the suite's
+    test_generated_docs_are_current fails on files the guide did not mention)."""
+    [step] = [b for b in re.split(r"\n(?=- )", GUIDE.read_text()) if b.startswith("- **Generated docs**")]
+    assert "`gpupro docs docs`" in step and "test_generated_docs_are_current" in step
+    named = set(re.findall(r"`(docs/[\w/.-]+\.md)`", step))
+    assert main(["docs", str(tmp_path / "docs")]) == 0
+    root = GUIDE.parent.parent
+    changed = {p.relative_to(tmp_path).as_posix() for p in (tmp_path / "docs").rglob("*.md")
+               if not (root / p.relative_to(tmp_path)).is_file() or (root / p.relative_to(tmp_path)).read_text() != p.read_text()}
+    assert changed == named
+
+
 def test_the_guides_benchmark_runs():
     namespace = {"__name__": "bench_fog"}
     exec(compile(_block("python", "time_function"), "bench_fog.py", "exec"), namespace)

@@ -1,6 +1,8 @@
 """Experiment configs: checked key by key with errors naming the file and the dotted key, ``--set``
 overrides, configs read as data, and the scenes, lights, cameras and pipelines built from them."""
 
+import ast
+import io
 import math
 import pathlib
 import re
@@ -34,6 +36,8 @@ def build(path, overrides=()):
 LOAD_ERRORS = {
     "unknown top-level key": ("colour = 1\n" + CORNELL, r"unknown key 'colour'"),
     "unknown nested key": (CORNELL + "[camera]\nfov = 40.0\n", r"unknown key 'camera\.fov'"),
+    "misspelt key": (CORNELL + "[camera]\nresolutoin = [8, 8]\n",
+                     r"unknown key 'camera\.resolutoin' \(allowed here: .*\); did you mean 'resolution'\?$"),
     "unknown key in camera.path": ("frames = 2\n" + CORNELL + "[camera.path]\neye_start = [0, 0, 0]\n",
                                    r"unknown key 'camera\.path\.eye_start'"),
     "zero resolution": (CORNELL + "[camera]\nresolution = [0, 64]\n", r"camera\.resolution: expected .*got \[0, 64\]"),
@@ -51,7 +55,10 @@ LOAD_ERRORS = {
     "invalid TOML": (CORNELL + "[camera\nnear = 1\n", r"not valid TOML"),
     "near >= far": (CORNELL + "[camera]\nnear = 5.0\nfar = 5.0\n", r"camera\.near \(5\.0\) must be less than camera\.far"),
     "unknown pass": (CORNELL + '[pipeline]\npasses = ["raster", "gbuffer", "clustered", "post"]\n',
-                     r"pipeline\.passes: unknown pass 'clustered'"),
+                     r"pipeline\.passes: unknown pass 'clustered'; did you mean 'clustered_(deferred|forward)' or "
+                     r"'clustered_(deferred|forward)'\? \(`gpupro list` lists all \d+\)$"),
+    "unknown pass like none": (CORNELL + '[pipeline]\npasses = ["raster", "gbuffer", "zzz", "post"]\n',
+                               r"pipeline\.passes: unknown pass 'zzz' \(known: .*raster, .*tiled_deferred"),
     "options for a pass not in the pipeline": (CORNELL + "[pipeline.options.shadow_maps]\ncount = 1\n",
                                                r"pipeline\.options\.shadow_maps: no such pass"),
     "params for a pass not in the pipeline": (CORNELL + "[pipeline.params.forward]\nambient = [0.0, 0.0, 0.0]\n",
@@ -112,7 +119,13 @@ BUILD_ERRORS = {
                         "box_lo = [1.0, 1.0, 1.0]\nbox_hi = [0.0, 2.0, 2.0]\n", r"lights\.box_lo must not exceed"),
     "spot cone inside out": (CORNELL + "[[lights.spot]]\ninner_angle_degrees = 50.0\nouter_angle_degrees = 40.0\n",
                              r"lights\.spot: .*spot cones"),
-    "unknown scene option": ('[scene]\nname = "cornell_box"\noptions = { size = 2.0 }\n', r"scene\.options: .*size"),
+    "unknown scene option": ('[scene]\nname = "cornell_box"\noptions = { size = 2.0 }\n',
+                             r"scene\.options\.size: not an option of scene 'cornell_box' \(its options: translucent\)$"),
+    "misspelt scene option": ('[scene]\nname = "atrium"\noptions = { tree = true }\n',
+                              r"scene\.options\.tree: not an option of scene 'atrium' \(its options: trees, seed\); "
+                              r"did you mean 'trees'\?"),
+    "scene option set elsewhere": ('[scene]\nname = "atrium"\noptions = { resolution = [8, 8] }\n',
+                                   r"scene\.options\.resolution: not an option of scene 'atrium'"),
     "outputs no pass produces": (CORNELL + '[outputs]\nbuffers = ["hdr", "bloom"]\n', r"pipeline: .*bloom"),
     "far that overflows float32": (CORNELL + "[camera]\nfar = 3e38\n", r"camera: .*far"),
     "scene option too large for memory": ('[scene]\nname = "plane"\noptions = { subdivisions = 100_000_000 }\n',
@@ -156,6 +169,24 @@ def test_shipped_configs_load_and_build(path):
     assert config["name"] == path.stem
     assert scene.lights.count > 0
     assert any(b == "hdr" or b.startswith("hdr_") for b in pipeline.outputs)
+
+
+# Each shipped config rendered as `gpupro run` renders it, at its own size and over its whole camera path:
+# how many lights a tile lists or how many particles a pixel meets depends on the resolution, so no smaller
+# frame shows that the full one does not grow. Marked slow: a compile per config at full size, for the 17
+# configs with lossy capacities 450 s of CPU time (15 minutes' wall time on a loaded 2-core CPU; clouds 150 s).
+@pytest.mark.slow
+@pytest.mark.parametrize("path", RUN_CONFIGS, ids=lambda p: p.name)
+def test_shipped_configs_render_without_capacity_growth(path, tmp_path):
+    from gpupro.pipeline.capacity import capacities, has_lossy_capacity
+    from gpupro.runner import run_experiment
+
+    _, _, (pipeline, _) = build(path)
+    if not has_lossy_capacity(pipeline):
+        pytest.skip("no lossy capacity in use: nothing to grow")
+    said = io.StringIO()
+    report = run_experiment(path, out_dir=tmp_path, progress=said)
+    assert report["capacities"] == capacities(pipeline), said.getvalue()  # as written: none grew
 
 
 @pytest.mark.parametrize("text, expected", [
@@ -388,6 +419,44 @@ def test_explicit_lights_are_built_as_written(tmp_path):
     assert np.isinf(lights.range[3])
     np.testing.assert_allclose([lights.cos_inner[2], lights.cos_outer[2]],
                                np.cos(np.radians([20.0, 35.0])), rtol=1e-6)
+
+
+def _reference_rows() -> dict[str, str]:
+    """``gpupro list --config`` as {key: what it accepts} (keys listed twice, scene options of several
+    scenes, keep their first row)."""
+    from gpupro.catalogue import config_reference
+
+    rows = {}
+    for line in config_reference().splitlines()[1:]:
+        key, accepts = re.split(r"\s{2,}", line, maxsplit=1)
+        rows.setdefault(key, accepts)
+    return rows
+
+
+def test_reference_describes_every_table_by_its_keys():
+    rows = _reference_rows()
+    for key, accepts in rows.items():
+        assert accepts not in ("a table", "a list of tables"), f"{key} is documented only as {accepts!r}"
+    for kind in ("point", "spot", "directional", "capsule"):
+        assert {k for k in rows if k.startswith(f"lights.{kind}[].")} == {f"lights.{kind}[].{k}" for k in config_module.LIGHT_KEYS[kind]}
+    assert {"fit.steps", "fit.parameters[].path", "fit.parameters[].lower", "pipeline.inputs.<pass>.<input>",
+            "outputs.preview", "scene.options.trees", "scene.options.cells"} <= set(rows)
+    assert "default 100" in rows["fit.steps"] and "default False" in rows["scene.options.trees"]
+
+
+def test_an_empty_explicit_light_takes_the_documented_defaults(tmp_path):
+    rows = _reference_rows()
+    default = lambda key: ast.literal_eval(re.search(r"; default (.+?)(;|$)", rows[f"lights.spot[].{key}"])[1])
+    _, scene, _ = build(write(tmp_path, CORNELL + '[lights]\ngenerator = "none"\n[[lights.spot]]\n'))
+    lights = scene.lights
+    assert lights.count == 1 and lights.kind[0] == SPOT
+    np.testing.assert_allclose(lights.position[0], default("position"))
+    direction = np.asarray(default("direction"))
+    np.testing.assert_allclose(lights.direction[0], direction / np.linalg.norm(direction))
+    np.testing.assert_allclose(lights.color[0], np.asarray(default("color")) * default("intensity"))
+    np.testing.assert_allclose(lights.range[0], default("range"))
+    np.testing.assert_allclose([lights.cos_inner[0], lights.cos_outer[0]],
+                               np.cos(np.radians([default("inner_angle_degrees"), default("outer_angle_degrees")])), rtol=1e-6)
 
 
 def test_explicit_lights_add_to_the_scene_lights(tmp_path):

@@ -18,7 +18,8 @@ import pytest
 import gpupro as gp
 from gpupro.cli import main
 from gpupro.config import ConfigError
-from gpupro.fit import FitParameter, check_grads, fit, fit_experiment, get_value, plot_curve, set_value
+from gpupro.fit import (VIRIDIS, FitParameter, check_grads, error_image, fit, fit_experiment, get_value, plot_curve,
+                        set_value)
 from gpupro.io import preview_image, read_exr, read_png
 from gpupro.pipeline import make_pass
 from gpupro.technique import OptionError
@@ -82,14 +83,54 @@ def test_demo_writes_target_before_and_after(demo):
     np.testing.assert_allclose(buffers["after"], buffers["target"], rtol=1e-2, atol=1e-3)
     comparison = read_png(out / "comparison.png")
     height, width, _ = comparison.shape
-    assert 48 < height < 2 * 48 and 3 * 48 <= width < 4 * 48  # three panels in a row, labels above
-    shared = {k: preview_image("hdr", v, normalise_from=buffers["target"]) for k, v in buffers.items()}
-    np.testing.assert_array_equal(comparison[-48:, :48], shared["target"])
-    np.testing.assert_array_equal(comparison[-48:, (width - 48) // 2:(width + 48) // 2], shared["before"])
-    np.testing.assert_array_equal(comparison[-48:, -48:], shared["after"])
-    assert np.any(comparison[:-48] == 0)  # label pixels
+    side = 6 * 48  # panels enlarged 6 × 6 per pixel: the smallest factor taking 48 pixels to 256 or more
+    assert side < height < side + 48 and 3 * side <= width < 3 * side + 48  # three panels in a row, labels above
+    shared = {k: enlarged_6(preview_image("hdr", v, normalise_from=buffers["target"])) for k, v in buffers.items()}
+    np.testing.assert_array_equal(comparison[-side:, :side], shared["target"])
+    np.testing.assert_array_equal(comparison[-side:, (width - side) // 2:(width + side) // 2], shared["before"])
+    np.testing.assert_array_equal(comparison[-side:, -side:], shared["after"])
+    assert np.any(comparison[:-side] == 0)  # label pixels
     error = read_png(out / "error.png")
-    assert error.shape == (48, 48, 1) and error.max() < 16  # well below the start's largest error (255)
+    after = np.abs(buffers["after"] - buffers["target"]).sum(axis=-1)
+    assert error.shape[1] == side and error.shape[0] > side
+    brightest = np.unravel_index(np.argmax(after), after.shape)
+    # the largest error is the scale's top colour however small it is (the legend says how large)
+    np.testing.assert_array_equal(error[6 * brightest[0], 6 * brightest[1]], VIRIDIS[-1])
+
+
+def enlarged_6(image):
+    return np.repeat(np.repeat(image, 6, axis=0), 6, axis=1)
+
+
+def _legend_bar(image, map_rows):
+    """The first row under the map that is not white anywhere: the colour scale's bar."""
+    for row in image[map_rows:]:
+        if not np.any(np.all(row == 255, axis=-1)):
+            return row
+    raise AssertionError("no colour bar under the map")
+
+
+def test_error_image_is_enlarged_false_colour_with_its_scale_drawn():
+    error = np.zeros((48, 40))
+    error[10:20, 5:15] = 0.25  # half the largest error
+    error[30, 30] = 0.5
+    image = error_image(error, "error")
+    assert image.dtype == np.uint8 and image.shape[1] == 6 * 40 and image.shape[0] > 6 * 48  # 48 → 288 >= 256
+    shown = image[:6 * 48, :6 * 40]
+    np.testing.assert_array_equal(shown, enlarged_6(shown[::6, ::6]))  # nearest neighbour, 6 × 6 blocks
+    colours = shown[::6, ::6].astype(int)
+    bar = _legend_bar(image, 6 * 48).astype(int)
+    assert len(bar) == 6 * 40
+    luminance = bar @ np.array([0.2126, 0.7152, 0.0722])
+    assert np.all(np.diff(luminance) >= -0.5) and luminance[-1] - luminance[0] > 150  # dark to bright
+    np.testing.assert_array_equal(colours[0, 0], bar[0])  # no error: the bar's left end
+    np.testing.assert_array_equal(colours[30, 30], bar[-1])  # the largest error: its right end
+    np.testing.assert_allclose(colours[15, 10], bar[len(bar) // 2], atol=3)  # half of it: the middle
+    below = image[6 * 48:]
+    ink = np.all(below == 0, axis=-1)
+    assert ink[:, :20].any() and ink[:, -20:].any()  # "0" and the largest value written at the bar's ends
+    flat = error_image(np.zeros((8, 8)), "none")  # no error at all: the scale's bottom colour
+    np.testing.assert_array_equal(flat[:256, :256], np.broadcast_to(VIRIDIS[0], (256, 256, 3)))
 
 
 def tiny_pipeline(*, stop_gain_gradient=False):
@@ -228,18 +269,21 @@ def fit_config(tmp_path, old=None, new=None):
 
 @pytest.mark.parametrize("overrides, change, message", [
     (['fit.steps="100"'], None, r"fit\.steps: expected an integer >= 1, got '100'"),
-    (["fit.learning_rate=0"], None, r"fit\.learning_rate: expected a number > 0"),
+    (["fit.learning_rate=0"], None, r"fit\.learning_rate: expected a finite number > 0"),
     (["fit.loss=l3"], None, r"fit\.loss: expected one of"),
     (["fit.optimizer=newton"], None, r"fit\.optimizer: expected one of"),
     (["fit.lr=0.1"], None, r"unknown key 'fit\.lr'"),
     ([], ('path = "scene.lights.color"', 'path = "scene.lights.nope"'),
      r"fit\.parameters: fit parameter path 'scene\.lights\.nope': no 'nope' there"),
     ([], ('path = "scene.lights.color"', 'path = "params.nope.x"'), r"fit\.parameters: .*'params\.nope\.x'"),
-    ([], ("init = 0.5", "start = 0.5"), r"fit\.parameters\[1\]: .*unknown \['start'\]"),
+    ([], ("init = 0.5", "start = 0.5"), r"unknown key 'fit\.parameters\[1\]\.start' \(allowed here: .*init.*\)$"),
+    ([], ("init = 0.5", "inti = 0.5"), r"unknown key 'fit\.parameters\[1\]\.inti' .*; did you mean 'init'\?$"),
+    ([], ('path = "scene.lights.color"', 'indices = [0]'), r"fit\.parameters\[0\]: needs 'path'"),
 ])
 def test_bad_fit_section_is_refused_naming_file_and_key(tmp_path, overrides, change, message):
     path = fit_config(tmp_path, *(change or ()))
-    with pytest.raises(ConfigError, match=re.escape(str(path)) + ": " + message):
+    named = "".join(f"--set {re.escape(text)}: " for text in overrides)  # the override that brings the error in
+    with pytest.raises(ConfigError, match=re.escape(str(path)) + ": " + named + message):
         fit_experiment(path, out_dir=tmp_path / "out", overrides=overrides, progress=None)
     assert not (tmp_path / "out").exists()
 

@@ -95,6 +95,14 @@ def test_bad_pass_options_are_named():
         gp.default_pipeline().with_options("deferred", distribution="phong")
 
 
+def test_unknown_technique_ids_name_the_closest_ids():
+    for make in (make_pass, lambda name: pipeline_for(name, example=True)):
+        with pytest.raises(KeyError, match=r"unknown technique 'tiled_deffered'; did you mean 'tiled_deferred'"):
+            make("tiled_deffered")
+    with pytest.raises(KeyError, match=r"unknown technique 'qqq' \(known: .*deferred, .*post"):  # nothing close
+        make_pass("qqq")
+
+
 def test_forward_equals_deferred_on_textured_surfaces():
     rng = np.random.default_rng(3)
     positions = np.array([[-2, -2, 0], [2, -2, 0], [2, 2, 0], [-2, 2, 0]], np.float32)

@@ -9,6 +9,7 @@ params are the technique's defaults (or ``params=...``). A pass is named after i
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -17,6 +18,31 @@ from gpupro.technique import Technique, get, registered
 
 STANDARD = ("raster", "gbuffer", "shadow_maps", "deferred", "post")
 """Producers preferred when a pipeline is completed around one technique (:func:`pipeline_for`)."""
+
+
+def did_you_mean(name: str, known) -> str:
+    """``"did you mean 'a' or 'b'?"`` naming the (at most three) strings of ``known`` closest to ``name``
+    (:func:`difflib.get_close_matches`, closest first), or ``""`` when none is close: for errors about
+    unknown names (passes, config keys)."""
+    close = difflib.get_close_matches(name, list(known), n=3)
+    return f"did you mean {' or '.join(map(repr, close))}?" if close else ""
+
+
+def unknown_technique(name: str, what: str = "technique") -> str:
+    """The error message for ``name``, which no registered technique has: the closest ids
+    (:func:`did_you_mean`), or every id when none is close."""
+    hint = did_you_mean(name, registered())
+    return (f"unknown {what} {name!r}; {hint} (`gpupro list` lists all {len(registered())})" if hint
+            else f"unknown {what} {name!r} (known: {', '.join(registered())})")
+
+
+def _technique(technique: str | Technique) -> Technique:
+    """The specification of ``technique`` (an id or a specification); a ``KeyError`` for an unknown id."""
+    if not isinstance(technique, str):
+        return technique
+    if technique not in registered():
+        raise KeyError(unknown_technique(technique))
+    return get(technique)
 
 
 def make_pass(technique: str | Technique, *, name: str | None = None, params: Mapping[str, Any] | None = None,
@@ -28,15 +54,15 @@ def make_pass(technique: str | Technique, *, name: str | None = None, params: Ma
     ``inputs``: buffers to read instead of the declared ones, ``{declared input: buffer}`` (e.g.
     ``make_pass("post", inputs={"hdr": "hdr_fog"})`` tone maps a fog pass's output); ``name``: the pass
     name (default: the technique id). Raises :class:`gpupro.technique.OptionError` (a ``ValueError``)
-    naming the option, parameter or input.
+    naming the option, parameter or input, and a ``KeyError`` for an unknown technique id.
     """
-    spec = get(technique) if isinstance(technique, str) else technique
+    spec = _technique(technique)
     return Pass.of_technique(spec, name=name, params=params, inputs=inputs, **options)
 
 
 def _made(technique: str, example: bool, **options) -> Pass:
     """``make_pass(technique, **options)``, over the technique's ``example_options`` when ``example``."""
-    return make_pass(technique, **{**((get(technique).example_options or {}) if example else {}), **options})
+    return make_pass(technique, **{**((_technique(technique).example_options or {}) if example else {}), **options})
 
 
 def complete(passes: Sequence[Pass], *, outputs: Sequence[str] | None = None, example: bool = False) -> Pipeline:
