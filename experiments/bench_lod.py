@@ -49,7 +49,7 @@ import numpy as np
 import gpupro as gp
 from gpupro.bench import device_info, peak_memory_bytes, time_function
 from gpupro.pipeline import pipeline_for
-from gpupro.technique import get, validate_options
+from gpupro.technique import get
 from gpupro.techniques.lod import grass
 
 CASES = ("grass", "clipmaps", "gpu_terrain", "water")
@@ -109,11 +109,11 @@ def time_technique(case: str, resolution, options: dict, *, repeats: int, warmup
 
 def time_grass_stages(resolution, options: dict, *, repeats: int, warmup: int) -> list[dict]:
     """The grass simulation step (every master, and the slave copies) and the LOD sort, each jitted alone."""
-    values = grass._checked(validate_options(get("grass"), options))
+    values = grass._checked(get("grass").options_of(options))
     blades = grass._growth(values)
     spheres, velocities = grass._sphere_arrays(values)
-    terrain = {k: values[k] for k in grass.TERRAIN_KEYS}
-    simulation = {k: values[k] for k in grass.SIMULATION_KEYS}
+    terrain = values.group("terrain")
+    simulation = values.group("simulation")
     slave_offset, slave_tip = jnp.asarray(blades.slave_offset), jnp.asarray(blades.slave_tip)
 
     def simulate(state, order, active):

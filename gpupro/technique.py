@@ -8,14 +8,16 @@ each plugin. Everything else is derived from the registry and written by nobody:
 - the pass factories that configs and notebooks pick by id (:func:`make_pass`, ``pipeline.passes``);
 - ``gpupro list`` and the reference page of each technique (:func:`reference_page`);
 - the EXR channel names of every buffer (:attr:`Buffer.channels`);
-- the generic tests of ``tests/test_techniques.py`` (options keyword-only, gradients of every declared
-  parameter, jit = no jit, equality with the ``reference``, overflow reported and handled).
+- the options record its pass function takes (:class:`Options`: each option declared once, here);
+- the generic tests of ``tests/test_techniques.py`` (the pass function's signature, gradients of every
+  declared parameter, jit = no jit, equality with the ``reference``, overflow reported and handled).
 
-The pass function is ``apply(params, inputs, scene, **options)`` → ``outputs`` or ``(outputs,
-counters)``; a technique with per-frame state (``init_state``) gets ``apply(params, inputs, scene,
-state, **options)`` → ``(outputs, counters, state)``. ``params`` is a dict of float arrays named by
-:attr:`Technique.params`; ``inputs`` holds the required inputs and those optional ones that some pass
-of the pipeline produces; ``options`` are validated Python values (static: they may set shapes).
+The pass function is ``apply(params, inputs, scene, options)`` → ``outputs`` or ``(outputs,
+counters)``; a technique with per-frame state gets ``apply(params, inputs, scene, state, options)`` →
+``(outputs, counters, state)`` and ``init_state(scene, options)`` → the first frame's state. ``params``
+is a dict of float arrays named by :attr:`Technique.params`; ``inputs`` holds the required inputs and
+those optional ones that some pass of the pipeline produces; ``options`` is the :class:`Options` record
+of the validated static options (Python values: they may set shapes), ``options.tile``.
 """
 
 from __future__ import annotations
@@ -119,12 +121,81 @@ class Buffer(typing.NamedTuple):
 
 
 class Option(typing.NamedTuple):
-    """A static option: Python value, validated once where the pass is built."""
+    """A static option: Python value, validated once where the pass is built.
+
+    ``group``: the name (or a tuple of names) of the groups of options that a helper of the technique
+    takes together (the cloud field's, the lookup tables'), read back as one dict with
+    :meth:`Options.group`, so that no list of their names is kept anywhere else.
+    """
 
     name: str
     default: Any
     check: Check
     doc: str
+    group: str | tuple[str, ...] = ""
+
+    @property
+    def groups(self) -> tuple[str, ...]:
+        """The groups the option belongs to (none for ``group=""``)."""
+        return (self.group,) if isinstance(self.group, str) and self.group else tuple(self.group or ())
+
+
+class Options(Mapping):
+    """A technique's validated static options as one frozen, hashable value: what a pass function gets.
+
+    ``options.tile`` or ``options["tile"]`` reads one; ``options.group("lut")`` the dict of a group's options
+    (:attr:`Option.group`), for a helper taking them as keywords (``precompute_luts(**options.group("lut"))``);
+    ``options.replace(tile=16)`` a copy with some changed (unchecked: build it with :func:`options_of` to
+    check). A :class:`Mapping` of name → value in the specification's order, so ``**options`` passes all
+    of them to a function with keyword-only options."""
+
+    __slots__ = ("_values", "_groups")
+
+    def __init__(self, values: Mapping[str, Any], groups: Mapping[str, tuple[str, ...]] | None = None):
+        object.__setattr__(self, "_values", dict(values))
+        object.__setattr__(self, "_groups", dict(groups or {}))
+
+    def __getattr__(self, name: str):
+        try:
+            return self._values[name]
+        except KeyError:
+            raise AttributeError(f"no option {name!r} (options: {', '.join(self._values) or 'none'})") from None
+
+    def __setattr__(self, name, value):
+        raise AttributeError("Options are frozen: use options.replace(...)")
+
+    def __getitem__(self, name: str):
+        return self._values[name]
+
+    def __iter__(self):
+        return iter(self._values)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __hash__(self) -> int:
+        return hash(tuple(self._values.items()))
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Options) and self._values == other._values
+
+    def __repr__(self) -> str:
+        return "Options(" + ", ".join(f"{k}={v!r}" for k, v in self._values.items()) + ")"
+
+    def group(self, name: str) -> dict[str, Any]:
+        """The options of group ``name``, in declaration order; a ``KeyError`` names the groups there are."""
+        chosen = {k: v for k, v in self._values.items() if name in self._groups.get(k, ())}
+        if not chosen:
+            known = sorted({g for groups in self._groups.values() for g in groups})
+            raise KeyError(f"no option group {name!r} (groups: {', '.join(known) or 'none'})")
+        return chosen
+
+    def replace(self, **changes) -> Options:
+        """A copy with ``changes`` applied (names must exist)."""
+        unknown = sorted(set(changes) - set(self._values))
+        if unknown:
+            raise AttributeError(f"no options {unknown} (options: {', '.join(self._values)})")
+        return Options({**self._values, **changes}, self._groups)
 
 
 class Param(typing.NamedTuple):
@@ -198,7 +269,7 @@ class Technique(typing.NamedTuple):
 
     ``id`` is the name configs use for the pass (``pipeline.passes``); ``source`` the book, chapter and
     section (or paper) it follows; ``reference`` the id of the technique with the same outputs and no
-    acceleration that it must agree with; ``init_state(scene, **options)`` the first frame's state
+    acceleration that it must agree with; ``init_state(scene, options)`` the first frame's state
     (``None`` for stateless techniques); ``example_options``: options for a small, fast frame (the
     generic tests run every technique with them, e.g. a 32² shadow map instead of 512²).
     ``multisample``: its pass takes multisampled image inputs ([H, W, S, ...], a sample axis after the
@@ -231,6 +302,12 @@ class Technique(typing.NamedTuple):
 
     def option(self, name: str) -> Option:
         return next(o for o in self.options if o.name == name)
+
+    def options_of(self, values: Mapping[str, Any] | None = None, **overrides) -> Options:
+        """The :class:`Options` record its pass function takes: ``values`` updated by ``overrides``,
+        checked against the specification and completed with its defaults (:func:`validate_options`)."""
+        checked = validate_options(self, {**(values or {}), **overrides})
+        return Options(checked, {o.name: o.groups for o in self.options if o.groups})
 
 
 TECHNIQUES: dict[str, Technique] = {}

@@ -16,7 +16,7 @@ import pytest
 import gpupro as gp
 from gpupro.media import pixel_rays, rayleigh_phase
 from gpupro.pipeline import make_pass
-from gpupro.technique import default_params, get, validate_options
+from gpupro.technique import default_params, get
 from gpupro.techniques.media import atmosphere as atm
 
 RES = (16, 16)
@@ -29,8 +29,9 @@ def _frame(technique_id, **options):
     key = (technique_id, tuple(sorted(options.items())))
     if key not in _FRAMES:
         spec = get(technique_id)
-        values = validate_options(spec, options)
-        _FRAMES[key] = jax.jit(lambda p, camera, inputs: spec.apply(p, inputs, types.SimpleNamespace(camera=camera), **values))
+        values = spec.options_of(options)
+        _FRAMES[key] = jax.jit(lambda p, camera, inputs: spec.apply(p, inputs, types.SimpleNamespace(camera=camera),
+                                                                    values))
     return _FRAMES[key]
 
 
@@ -217,5 +218,5 @@ def test_bad_options_and_cameras_are_refused():
         make_pass("atmosphere", lut_size=2)
     ortho = gp.scene.make_camera((0.0, 0.0, 0.0), (0.0, 0.0, -1.0), projection="orthographic", resolution=RES)
     with pytest.raises(ValueError, match="perspective camera"):
-        atm.apply(_params(), _inputs(), types.SimpleNamespace(camera=ortho), optical_depth="lut", steps=2,
-                  lut_size=8, world_thickness=40.0, rayleigh_phase=True)
+        atm.apply(_params(), _inputs(), types.SimpleNamespace(camera=ortho), get("atmosphere").options_of(
+            optical_depth="lut", steps=2, lut_size=8, world_thickness=40.0, rayleigh_phase=True))

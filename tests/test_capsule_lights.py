@@ -20,7 +20,7 @@ from gpupro.shading.light_linked_list import _ray_capsule
 from gpupro.shading.light_terms import pad_lights
 from gpupro.shading.tiles import to_tiles
 from gpupro.shadows.maps import ShadowMaps, build_shadow_maps, shadow_factor
-from gpupro.technique import default_params, get, validate_options
+from gpupro.technique import default_params, get
 from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, shade_fptl
 from gpupro.techniques.lights.stalker import light_support
 from many_lights_scene import CAMERA, COVERED, GBUFFER, OPTIONS, SCENE, assert_same, mixed_lights, world_at_pixel
@@ -238,10 +238,10 @@ def render(technique_id, options, scene=None):
     technique = get(technique_id)
     params = {**default_params(technique), "ambient": jnp.asarray(OPTIONS["ambient"], jnp.float32),
               "background": jnp.asarray(OPTIONS["background"], jnp.float32)}
-    options = validate_options(technique, {"light_chunk": OPTIONS["light_chunk"], **options})
+    options = technique.options_of({"light_chunk": OPTIONS["light_chunk"], **options})
     if all(b.name in GBUFFER or b.optional for b in technique.inputs):
         inputs = {b.name: GBUFFER[b.name] for b in technique.inputs if b.name in GBUFFER}
-        out, counters = jax.jit(lambda p, i, s: technique.apply(p, i, s, **options))(params, inputs, scene)
+        out, counters = jax.jit(lambda p, i, s: technique.apply(p, i, s, options))(params, inputs, scene)
         return np.asarray(out["hdr"]), counters
     pipeline = gp.pipeline_for(technique_id, outputs=("hdr",), **options)
     frame = pipeline({**pipeline.init_params(), technique_id: params}, scene)

@@ -45,7 +45,7 @@ def _clipmap(eye, active, params=None, **levels):
     """The state of a first frame at ``eye`` and its drawn mesh."""
     levels = {**LEVELS, **levels}
     eye, active = jnp.asarray(eye, jnp.float32), jnp.asarray(active, bool)
-    state, _, _ = _update(2, **levels)(C.init_state(None, **levels), eye, active)
+    state, _, _ = _update(2, **levels)(C.init_state(None, C.TECHNIQUE.options_of(levels)), eye, active)
     mesh, face_levels, counters = _mesh(**levels)(params or _params(), state["heights"], state["origins"], eye, active)
     return state, mesh, face_levels, counters
 
@@ -71,13 +71,14 @@ def test_incremental_update_equals_a_full_rebuild_along_a_viewer_path():
     path = [((0.1, 0.0, 0.2), 4), ((0.4, 0.0, 0.7), 4), ((1.3, 0.0, 0.4), 3), ((2.6, 0.0, -0.9), 2),
             ((2.9, 0.0, -1.2), 4), ((-4.7, 0.0, -1.0), 4), ((-4.9, 0.0, 0.3), 3), ((-3.6, 0.0, 0.6), 4),
             ((-3.0, 0.0, 1.0), 1), ((-2.2, 0.0, 1.5), 4)]
-    state = C.init_state(None, clip_levels=L, grid_size=n)
+    state = C.init_state(None, C.TECHNIQUE.options_of(clip_levels=L, grid_size=n))
     seen = {"incremental": 0, "rebuilt": 0}
     for eye, active_count in path:
         active = np.arange(L) >= L - active_count
         old_origins, old_valid = np.asarray(state["origins"]), np.asarray(state["valid"])
         state, written, rebuilt = update(state, jnp.asarray(eye, jnp.float32), jnp.asarray(active))
-        fresh, _, _ = update(C.init_state(None, clip_levels=L, grid_size=n), jnp.asarray(eye, jnp.float32),
+        fresh, _, _ = update(C.init_state(None, C.TECHNIQUE.options_of(clip_levels=L, grid_size=n)),
+                             jnp.asarray(eye, jnp.float32),
                              jnp.asarray(active))
         grid = np.asarray(C.windows(state["heights"], state["origins"]))
         np.testing.assert_array_equal(grid[active], np.asarray(C.windows(fresh["heights"], fresh["origins"]))[active])
@@ -412,7 +413,7 @@ def test_lod_cost_gradients_are_finite_and_nonzero_where_a_level_is_in_its_band(
     # The geometry follows the transition width: the drawn heights have a finite, non-zero derivative
     # (forward mode, one compiled program for the derivative and the central difference).
     eye, active = jnp.asarray([0.83, 0.2, -1.37]), jnp.ones(L, bool)
-    state, _, _ = _update(2)(C.init_state(None, clip_levels=L, grid_size=n), eye, active)
+    state, _, _ = _update(2)(C.init_state(None, C.TECHNIQUE.options_of(clip_levels=L, grid_size=n)), eye, active)
     weights = jax.random.normal(jax.random.PRNGKey(0), (L * n * n,))
     heights = lambda p: jnp.vdot(weights, C.clipmap_mesh(p, state["heights"], state["origins"], eye, active, terrain=TERRAIN,
                                                          **LEVELS)[0].positions[:, 1])

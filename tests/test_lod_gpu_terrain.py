@@ -31,12 +31,12 @@ def _counts(S, L, Lc):
 
 
 def _options(**changes):
-    return T.validate_options(T.TECHNIQUE, {**MAP, **RING, **changes})
+    return T.TECHNIQUE.options_of({**MAP, **RING, **changes})
 
 
 @functools.lru_cache(maxsize=None)
 def _heights(**changes):
-    return T.init_state(None, **_options(**changes))["height"]
+    return T.init_state(None, _options(**changes))["height"]
 
 
 @functools.lru_cache(maxsize=None)
@@ -323,7 +323,7 @@ def _volume(heights):
 def test_plough_and_erosion_conserve_the_terrain_volume():
     o, step = _modifier(plough_path="-2.5, 0.3, 2.5, 0.3", plough_width=1.0, plough_depth=0.3, plough_heap=0.75,
                         tool_speed=0.5, erosion_steps=3)
-    state = T.init_state(None, **o)
+    state = T.init_state(None, o)
     start, total = np.asarray(state["height"]), np.abs(np.asarray(state["height"], np.float64)).sum()
     for _ in range(5):
         before = np.asarray(state["height"])
@@ -343,7 +343,7 @@ def test_wheel_sinks_the_track_once_pushes_its_sides_and_changes_nothing_else():
     sink, push, radius, width = 0.15, 0.4, 0.5, 0.5
     o, step = _modifier(wheel_path="0.3, -2, 0.3, 2", wheel_radius=radius, wheel_width=width, wheel_sink=sink,
                         wheel_push=push, tool_speed=0.75, erosion_steps=0)
-    state = T.init_state(None, **o)
+    state = T.init_state(None, o)
     h0 = np.asarray(state["height"], np.float64)
     for _ in range(2):
         state, _ = step(state)
@@ -401,7 +401,7 @@ def test_window_overflow_counts_the_work_region_outside_the_window():
     tool = dict(plough_path="-2, 0.3, 2, 0.3", plough_width=1.0, plough_depth=0.3, plough_heap=0.75, tool_speed=0.5,
                 erosion_steps=2)
     o, step = _modifier(**tool, modification_window=8)
-    state = T.init_state(None, **o)
+    state = T.init_state(None, o)
     new, windows = step(state)
     # The frame's work region: texel centres within the swept blade and its heap, [0, ℓ + ℓ_h] × [−b/2, b/2]
     # from (−2, 0.3), widened by erosion_steps + 1 texels.

@@ -30,42 +30,42 @@ def _lit(points, lights):
     return jnp.square(jnp.clip(1.0 - d / lights.range[None], 0.0, None))
 
 
-def toy_brute(params, inputs, scene):
+def toy_brute(params, inputs, scene, options):
     """Σ over every light of colour × (1 − d/r)²."""
     points = inputs["position"].reshape(-1, 3)
     value = matmul(_lit(points, scene.lights), scene.lights.color)  # full float32: no TF32 on GPUs
     return {"toy_hdr": params["gain"] * value.reshape(*RES, 3)}
 
 
-def toy_listed(params, inputs, scene, *, list_capacity):
+def toy_listed(params, inputs, scene, options):
     """The same sum over at most ``list_capacity`` lights per pixel: a light list that can overflow."""
     points = inputs["position"].reshape(-1, 3)
     weight = _lit(points, scene.lights)
     in_range = weight > 0
-    first = jnp.argsort(~in_range, axis=1, stable=True)[:, :list_capacity]  # the lights in range come first
+    first = jnp.argsort(~in_range, axis=1, stable=True)[:, :options.list_capacity]  # the lights in range come first
     kept = jnp.take_along_axis(weight, first, axis=1)
     value = einsum("pk,pkc->pc", kept, scene.lights.color[first])
     per_pixel = jnp.sum(in_range, axis=1)
-    counters = {"list_overflow": jnp.sum(per_pixel > list_capacity).astype(jnp.int32),
+    counters = {"list_overflow": jnp.sum(per_pixel > options.list_capacity).astype(jnp.int32),
                 "max_lights_per_pixel": jnp.max(per_pixel).astype(jnp.int32)}
     return {"toy_hdr": params["gain"] * value.reshape(*RES, 3)}, counters
 
 
-def toy_accumulate(params, inputs, scene, state, *, reset):
+def toy_accumulate(params, inputs, scene, state, options):
     """Running mean of ``hdr`` over the frames so far (the state holds the sum and the frame count)."""
-    total = inputs["hdr"] + (0.0 if reset else state["sum"])
-    frames = 1 if reset else state["frames"] + 1
+    total = inputs["hdr"] + (0.0 if options.reset else state["sum"])
+    frames = 1 if options.reset else state["frames"] + 1
     return {"hdr_mean": total / frames}, {"frames": jnp.int32(frames)}, {"sum": total, "frames": frames}
 
 
-def init_accumulate(scene, *, reset):
+def init_accumulate(scene, options):
     return {"sum": jnp.zeros(scene.camera.resolution + (3,), jnp.float32), "frames": jnp.int32(0)}
 
 
-def toy_histogram(params, inputs, scene, *, bins):
+def toy_histogram(params, inputs, scene, options):
     """A histogram of the ``hdr`` luminance: a buffer that is not an image."""
     luminance = jnp.clip(jnp.mean(inputs["hdr"], axis=-1).reshape(-1), 0.0, 1.999)  # the last bin holds the rest
-    counts, edges = jnp.histogram(luminance, bins=bins, range=(0.0, 2.0))
+    counts, edges = jnp.histogram(luminance, bins=options.bins, range=(0.0, 2.0))
     return {"luminance_histogram": {"counts": counts, "edges": edges}}
 
 

@@ -1,8 +1,8 @@
 """Generic tests over the technique registry (as dm_pix tests every function): a technique registered in
 ``gpupro/techniques/`` gets all of these without a line of its own.
 
-- its specification is complete and its pass function takes its options keyword-only, with no defaults
-  of its own (the defaults live in the specification only);
+- its specification is complete, and its pass function takes its options as one record
+  (:class:`gpupro.technique.Options`) holding the specification's declarations;
 - every declared continuous parameter passes ``check_grads``;
 - jitted and un-jitted (called op by op, as in a notebook) frames agree;
 - a technique with a ``reference`` agrees with it on the shared scenes;
@@ -156,14 +156,18 @@ def test_specification_is_complete(technique_id):
 
 
 @pytest.mark.parametrize("technique_id", IDS)
-def test_options_are_keyword_only_and_defaults_live_in_the_specification(technique_id):
+def test_options_reach_the_pass_as_one_record_declared_in_the_specification(technique_id):
     t = TECHNIQUES[technique_id]
-    parameters = list(inspect.signature(t.apply).parameters.values())
-    positional = [p.name for p in parameters if p.kind == p.POSITIONAL_OR_KEYWORD]
-    assert positional == ["params", "inputs", "scene"] + (["state"] if t.init_state else [])
-    keyword = {p.name: p for p in parameters if p.kind == p.KEYWORD_ONLY}
-    assert set(keyword) == {o.name for o in t.options}
-    assert all(p.default is p.empty for p in keyword.values()), "defaults are the specification's, not the signature's"
+    stateful = ["state"] if t.init_state else []
+    assert list(inspect.signature(t.apply).parameters) == ["params", "inputs", "scene"] + stateful + ["options"]
+    if t.init_state:
+        assert list(inspect.signature(t.init_state).parameters) == ["scene", "options"]
+    options = t.options_of()
+    assert dict(options) == {o.name: o.default for o in t.options}, "the record holds the specification's defaults"
+    assert hash(options) == hash(t.options_of()) and options == t.options_of()
+    for o in t.options:
+        for group in o.groups:
+            assert options.group(group)[o.name] == o.default
 
 
 @pytest.mark.parametrize("technique_id", IDS)

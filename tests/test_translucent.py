@@ -18,7 +18,7 @@ from gpupro.raster import rasterize, reference, split_faces
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
 from gpupro.scene.lights import concatenate_lights
 from gpupro.shading.tiles import tile_light_lists
-from gpupro.technique import get, validate_options
+from gpupro.technique import get
 from gpupro.techniques.lights import translucent_forward as tf
 from gpupro.techniques.raster.translucent_layers import peel_layers
 
@@ -209,8 +209,8 @@ def test_each_light_list_structure_equals_brute_force(structure):
     """Lights behind the camera and across the near plane included; every listed light is evaluated, so
     the work counted is at least the exact work, and no list overflows."""
     buffers = _brute_force()
-    options = validate_options(get("translucent_forward"), dict(STRUCTURE_OPTIONS[structure], light_lists=structure))
-    run = jax.jit(lambda inputs: tf.apply({"ambient": jnp.asarray(AMBIENT)}, inputs, SCENE, **options))
+    options = get("translucent_forward").options_of(STRUCTURE_OPTIONS[structure], light_lists=structure)
+    run = jax.jit(lambda inputs: tf.apply({"ambient": jnp.asarray(AMBIENT)}, inputs, SCENE, options))
     outputs, counters = run({k: buffers[k] for k in INPUTS})
     expected = np.asarray(buffers["hdr_translucent"])
     np.testing.assert_allclose(outputs["hdr_translucent"], expected, rtol=0, atol=1e-4 * float(np.abs(expected).max()))

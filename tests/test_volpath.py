@@ -239,12 +239,12 @@ def test_clouds_reference_composites_over_the_scene_and_is_depth_tested():
     near = rng.random((12, 12)) < 0.5  # a surface 1 unit from the eye, in front of the clouds, or none
     inputs = {"hdr": jnp.asarray(rng.random((12, 12, 3)), jnp.float32), "coverage": jnp.asarray(near, jnp.float32),
               "view_depth": jnp.where(jnp.asarray(near), 1.0, 0.0)}
-    outputs, counters = clouds_reference.apply(params, inputs, scene, **options)
+    outputs, counters = clouds_reference.apply(params, inputs, scene, spec.options_of(options))
     hdr, error = np.asarray(outputs["hdr_clouds"]), np.asarray(outputs["hdr_clouds_error"])
     np.testing.assert_array_equal(hdr[near], np.asarray(inputs["hdr"])[near])
     assert (error[near] == 0).all() and (np.asarray(outputs["cloud_transmittance"])[near] == 1).all()
     assert (np.asarray(outputs["cloud_transmittance"])[~near] < 0.999).any() and int(counters["particles"]) > 0
-    empty, counters = clouds_reference.apply(params, inputs, scene, **{**options, "cloud_coverage": 0.999})
+    empty, counters = clouds_reference.apply(params, inputs, scene, spec.options_of(options, cloud_coverage=0.999))
     assert int(counters["particles"]) == 0
     np.testing.assert_array_equal(np.asarray(empty["hdr_clouds"]), np.asarray(inputs["hdr"]))
 

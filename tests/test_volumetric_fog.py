@@ -31,8 +31,8 @@ def _params(**values):
 
 def _froxels(**options):
     """The jitted froxel pass ``(params, inputs, scene, state) → (outputs, counters, state)``."""
-    values = validate_options(get("volumetric_fog"), {"fog_range": RANGE, **options})
-    return jax.jit(lambda p, i, s, state: vf.apply(p, i, s, state, **values))
+    values = get("volumetric_fog").options_of(options, fog_range=RANGE)
+    return jax.jit(lambda p, i, s, state: vf.apply(p, i, s, state, values))
 
 
 def _reference(**options):
@@ -136,7 +136,7 @@ def test_temporal_frames_blend_the_jittered_volume_with_the_reprojected_history(
     inputs = _inputs(np.random.default_rng(0).uniform(2.0, 14.0, RES))
     options = dict(GRID, temporal_blend=0.25)
     run = _froxels(**options)
-    state = vf.init_state(scene, **validate_options(get("volumetric_fog"), {"fog_range": RANGE, **options}))
+    state = vf.init_state(scene, get("volumetric_fog").options_of(options, fog_range=RANGE))
     plain, _, plain_state = _froxels(**GRID, temporal=False)(params, inputs, scene, None)
     first, _, after_first = run(params, inputs, scene, state)
     np.testing.assert_allclose(first["hdr_fog_volume"], plain["hdr_fog_volume"], rtol=1e-6, atol=1e-7)
@@ -161,10 +161,10 @@ def test_bad_options_are_refused_naming_them(scene):
         gp.make_pass("volumetric_fog", slice_integral="midpoint")
     with pytest.raises(ValueError, match=r"shadowed_lights: 3 shadowed lights but the scene has 2"):
         vf.apply(_params(), _inputs(np.ones(RES)), scene, None,
-                 **validate_options(get("volumetric_fog"), {**GRID, "shadowed_lights": 3}))
+                 get("volumetric_fog").options_of(GRID, shadowed_lights=3))
     with pytest.raises(ValueError, match=r"volumetric_fog: the light-loop kernel takes unshadowed lights only"):
-        jax.eval_shape(lambda: vf.apply(_params(), _inputs(np.ones(RES)), scene, None, **validate_options(
-            get("volumetric_fog"), {**GRID, "shadowed_lights": 1, "light_loop": "kernel"})))
+        jax.eval_shape(lambda: vf.apply(_params(), _inputs(np.ones(RES)), scene, None, get("volumetric_fog").options_of(
+            GRID, shadowed_lights=1, light_loop="kernel")))
 
 
 def test_in_scattering_kernel_equals_the_scan_with_its_gradients():

@@ -402,28 +402,35 @@ MULTIPLE_OF_4 = Check(lambda v: isinstance(v, int) and not isinstance(v, bool) a
                       "an integer >= 4, a multiple of 4")
 
 FIELD_OPTIONS = (
-    Option("grid_centre", (0.0, 0.0), CENTRE, "(x, z) of the cell grid's centre (world units; the chapter's camera)"),
-    Option("altitude", 1500.0, number(), "mid altitude y₀ of the cloud layer (world units)"),
+    Option("grid_centre", (0.0, 0.0), CENTRE, "(x, z) of the cell grid's centre (world units; the chapter's camera)",
+           group="field"),
+    Option("altitude", 1500.0, number(), "mid altitude y₀ of the cloud layer (world units)", group="field"),
     Option("cell_size", 100.0, number(0.0, strict_lo=True), "edge s₀ of the innermost ring's cells and lattice voxels "
-                                                            "(world units)"),
+                                                            "(world units)", group="field"),
     Option("rings", 4, integer(1, 10), "rings of the cell grid (chapter: 4–5); each outer one doubles size and "
-                                       "spacing"),
-    Option("ring_dimension", 120, MULTIPLE_OF_4, "cells D per ring side (chapter: 120–216)"),
-    Option("cell_layers", 3, integer(1), "lattice layers L of the innermost ring (chapter: 3–8); thickness L · s₀"),
-    Option("cloud_coverage", 0.5, number(0.0, 0.999), "threshold θ of the 2D coverage noise (higher: fewer clouds)"),
+                                       "spacing", group="field"),
+    Option("ring_dimension", 120, MULTIPLE_OF_4, "cells D per ring side (chapter: 120–216)", group="field"),
+    Option("cell_layers", 3, integer(1), "lattice layers L of the innermost ring (chapter: 3–8); thickness L · s₀",
+           group="field"),
+    Option("cloud_coverage", 0.5, number(0.0, 0.999), "threshold θ of the 2D coverage noise (higher: fewer clouds)",
+           group="field"),
     Option("cloud_coverage_scale", 2000.0, number(0.0, strict_lo=True), "feature size of the 2D coverage noise (world "
-                                                                  "units)"),
-    Option("noise_scale", 400.0, number(0.0, strict_lo=True), "feature size of the 3D density noise (world units)"),
-    Option("altitude_falloff", 1.1, number(0.0), "linear fall of the density with relative altitude (chapter: 1.1)"),
-    Option("particle_radius", 0.8, number(0.0, strict_lo=True), "particle radius, a fraction of its ring's voxel edge"),
-    Option("position_jitter", 0.5, number(0.0, 1.0), "random displacement of particles, a fraction of the voxel edge"),
-    Option("radius_jitter", 0.2, number(0.0, 0.99), "random relative change of the particle radii"),
-    Option("seed", 0, integer(0), "seed of the noise and the jitter"),
+                                                                  "units)", group="field"),
+    Option("noise_scale", 400.0, number(0.0, strict_lo=True), "feature size of the 3D density noise (world units)",
+           group="field"),
+    Option("altitude_falloff", 1.1, number(0.0), "linear fall of the density with relative altitude (chapter: 1.1)",
+           group="field"),
+    Option("particle_radius", 0.8, number(0.0, strict_lo=True),
+           "particle radius, a fraction of its ring's voxel edge", group="field"),
+    Option("position_jitter", 0.5, number(0.0, 1.0), "random displacement of particles, a fraction of the voxel edge",
+           group="field"),
+    Option("radius_jitter", 0.2, number(0.0, 0.99), "random relative change of the particle radii", group="field"),
+    Option("seed", 0, integer(0), "seed of the noise and the jitter", group="field"),
 )
 """The field's options, as both cloud techniques declare them: same names, defaults and checks."""
 
 FIELD_KEYS = tuple(o.name for o in FIELD_OPTIONS)
-"""The options that define the field (:func:`cloud_particles`' keywords)."""
+"""The options that define the field (:func:`cloud_particles`' keywords; the group ``"field"``)."""
 
 LATTICE_OPTION = Option("lattice_resolution", (64, 8, 64), dims_check(3), "cells of the density lattice marched towards the sun")
 

@@ -79,7 +79,9 @@ class Pass:
     counters)`` with ``counters`` a dict of scalar work counters. With ``init_state`` (``scene`` →
     the first frame's state pytree) it is called ``fn(params, inputs, scene, state, **options)`` and
     returns ``(outputs, counters, state)``.
-    ``options`` are static, hashable and passed as Python values (never traced), so they may set shapes.
+    ``options`` are static, hashable and passed as Python values (never traced), so they may set shapes;
+    a pass made from a technique (:meth:`of_technique`) hands them to the technique's ``apply`` as one
+    :class:`gpupro.technique.Options` record.
     ``params`` is the default differentiable pytree of float arrays, or ``None``. ``technique`` is the
     registered specification the pass was made from (:func:`gpupro.pipeline.passes.make_pass`), if any.
     ``bind`` maps a buffer name in ``inputs``/``optional`` to the name ``fn`` knows it by (a fog pass's
@@ -140,8 +142,9 @@ class Pass:
             if not isinstance(buffer, str) or not buffer:
                 raise OptionError(key, f"expected a buffer name, got {buffer!r}")
         wired = lambda b: binding.get(b.name, b.name)
-        init_state = None if spec.init_state is None else functools.partial(spec.init_state, **values)
-        return cls(name or spec.id, spec.apply,
+        init_state = None if spec.init_state is None else functools.partial(spec.init_state,
+                                                                               options=spec.options_of(values))
+        return cls(name or spec.id, functools.partial(_run_technique, spec),
                    inputs=tuple(wired(b) for b in spec.inputs if not b.optional),
                    optional=tuple(wired(b) for b in spec.inputs if b.optional),
                    outputs=tuple(b.name for b in spec.outputs), options=values,
@@ -211,6 +214,12 @@ class Pass:
                 raise PipelineError(f"pass {self.name!r}: counter {key!r} must be a scalar, "
                                     f"got shape {jnp.shape(value)}")
         return dict(outputs), dict(counters), state
+
+
+def _run_technique(spec: Technique, params, inputs, scene, *state, **options):
+    """The graph's pass function for a registered technique: ``spec.apply(params, inputs, scene[, state],
+    options)`` with the pass's options as one :class:`gpupro.technique.Options` record."""
+    return spec.apply(params, inputs, scene, *state, spec.options_of(options))
 
 
 class Pipeline:

@@ -200,11 +200,11 @@ def forward_twin(deferred: Technique, *, id: str, title: str, source: str, notes
     it rasterizes) and runs ``deferred.apply`` on them; ``id``, ``title``, ``source`` and ``notes`` (by
     default ``deferred``'s) describe the twin."""
     @functools.wraps(deferred.apply)
-    def apply(params, inputs, scene, **options):
+    def apply(params, inputs, scene, options):
         surface = gbuffer_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera)
         if "shadow" in inputs:
             surface["shadow"] = inputs["shadow"]
-        return deferred.apply(params, surface, scene, **options)
+        return deferred.apply(params, surface, scene, options)
 
     apply.__doc__ = f"{title}: the rasterizer's fragments → ``hdr`` [H, W, 3] (the forward twin of ``{deferred.id}``)."
     shadow = tuple(b for b in deferred.inputs if b.name == "shadow")

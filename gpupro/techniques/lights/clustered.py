@@ -20,16 +20,8 @@ def _shade(params, surface, scene, shadow, options):
                            background=params["background"], shadow=shadow, **options)
 
 
-def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, normal_bins, bounds, normal_cones,
-                   assignment, cluster_capacity, cluster_light_capacity, tree_branching, frontier_capacity,
-                   grid_capacity, unique_clusters, page_size, page_capacity, list_layout, list_memory_capacity):
+def apply_deferred(params, inputs, scene, options):
     """Clustered deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
-    options = dict(distribution=distribution, light_chunk=light_chunk, tile=tile, normal_bins=normal_bins,
-                   bounds=bounds, normal_cones=normal_cones, assignment=assignment, cluster_capacity=cluster_capacity,
-                   cluster_light_capacity=cluster_light_capacity, tree_branching=tree_branching,
-                   frontier_capacity=frontier_capacity, grid_capacity=grid_capacity, unique_clusters=unique_clusters,
-                   page_size=page_size, page_capacity=page_capacity, list_layout=list_layout,
-                   list_memory_capacity=list_memory_capacity)
     hdr, counters = _shade(params, {key: inputs[key] for key in DEFERRED_INPUTS}, scene, inputs.get("shadow"), options)
     return {"hdr": hdr}, counters
 

@@ -14,14 +14,15 @@ from gpupro.shading.deferred import (DEFERRED_INPUTS, HDR, LIGHT_LOOP_OPTION, SA
 from gpupro.technique import Technique, register
 
 
-def apply(params, inputs, scene, *, distribution, light_chunk, light_loop):
+def apply(params, inputs, scene, options):
     """Deferred shading of the G-buffer ``inputs`` by all of ``scene.lights`` → ``hdr`` [H, W, 3]
     (resolved from a multisampled G-buffer [H, W, S(, C)] with the rasterizer's ``triangle_id``)."""
     gbuffer = {key: inputs[key] for key in DEFERRED_INPUTS}
     if "triangle_id" in inputs:
         gbuffer["triangle_id"] = inputs["triangle_id"]
     hdr, counters = shade_deferred(gbuffer, scene.lights, scene.camera.eye, ambient=params["ambient"],
-                                   distribution=distribution, light_chunk=light_chunk, shadow=inputs.get("shadow"), light_loop=light_loop,
+                                   distribution=options.distribution, light_chunk=options.light_chunk,
+                                   shadow=inputs.get("shadow"), light_loop=options.light_loop,
                                    background=params["background"])
     return {"hdr": hdr}, counters
 

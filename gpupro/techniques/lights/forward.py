@@ -15,12 +15,14 @@ from gpupro.shading.deferred import (HDR, LIGHT_LOOP_OPTION, SHADING_COUNTERS, S
 from gpupro.technique import Technique, register
 
 
-def apply(params, inputs, scene, *, distribution, light_chunk, light_loop):
+def apply(params, inputs, scene, options):
     """Forward shading of the rasterizer's fragments by all of ``scene.lights`` → ``hdr`` [H, W, 3]
     (resolved from multisampled fragments [H, W, S(, 3)])."""
     hdr, counters = shade_forward(fragments_from(inputs), scene.mesh, scene.materials, scene.lights, scene.camera.eye,
-                                  ambient=params["ambient"], distribution=distribution, light_chunk=light_chunk,
-                                  light_loop=light_loop, shadow=inputs.get("shadow"), background=params["background"])
+                                  ambient=params["ambient"], distribution=options.distribution,
+                                  light_chunk=options.light_chunk,
+                                  light_loop=options.light_loop, shadow=inputs.get("shadow"),
+                                  background=params["background"])
     return {"hdr": hdr}, counters
 
 

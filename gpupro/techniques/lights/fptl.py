@@ -174,12 +174,13 @@ def shade_fptl(surface: dict, view_depth, lights: Lights, camera: Camera, *, amb
     return hdr, counters
 
 
-def apply(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity):
+def apply(params, inputs, scene, options):
     """FPTL deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     hdr, counters = shade_fptl({key: inputs[key] for key in DEFERRED_INPUTS}, inputs["view_depth"], scene.lights,
                                scene.camera, ambient=params["ambient"], background=params["background"],
-                               shadow=inputs.get("shadow"), distribution=distribution, light_chunk=light_chunk,
-                               tile=tile, tile_capacity=tile_capacity)
+                               shadow=inputs.get("shadow"), distribution=options.distribution,
+                               light_chunk=options.light_chunk,
+                               tile=options.tile, tile_capacity=options.tile_capacity)
     return {"hdr": hdr}, counters
 
 

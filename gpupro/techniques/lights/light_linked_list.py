@@ -14,13 +14,13 @@ from gpupro.shading.light_linked_list import LLL_CAPACITIES, LLL_COUNTERS, LLL_O
 from gpupro.technique import Technique, register
 
 
-def apply(params, inputs, scene, *, distribution, light_chunk, resolution_scale, pool_capacity, list_capacity):
+def apply(params, inputs, scene, options):
     """Light-linked-list deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     hdr, counters = shade_light_linked_list(
         {key: inputs[key] for key in DEFERRED_INPUTS}, scene.lights, scene.camera, ambient=params["ambient"],
-        background=params["background"], shadow=inputs.get("shadow"), distribution=distribution,
-        light_chunk=light_chunk, resolution_scale=resolution_scale, pool_capacity=pool_capacity,
-        list_capacity=list_capacity)
+        background=params["background"], shadow=inputs.get("shadow"), distribution=options.distribution,
+        light_chunk=options.light_chunk, resolution_scale=options.resolution_scale, pool_capacity=options.pool_capacity,
+        list_capacity=options.list_capacity)
     return {"hdr": hdr}, counters
 
 

@@ -473,15 +473,17 @@ SECTORS_OPTION = Check(lambda v: v is None or (isinstance(v, str) and v in SECTO
                        f"none, a layout name ({', '.join(SECTOR_LAYOUTS)}) or a valid gpupro.scene.sectors.Sectors")
 
 
-def apply(params, inputs, scene, *, distribution, light_chunk, light_capacity, material_model, lut_n_dot_l, lut_n_dot_h,
-          lut_layers, lut_min_roughness, sectors):
+def apply(params, inputs, scene, options):
     """S.T.A.L.K.E.R. deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     hdr, counters = shade_stalker({key: inputs[key] for key in DEFERRED_INPUTS}, inputs["view_depth"], scene.lights,
                                   scene.camera, ambient=params["ambient"], background=params["background"],
-                                  shadow=inputs.get("shadow"), distribution=distribution, light_chunk=light_chunk,
-                                  light_capacity=light_capacity, material_model=material_model, lut_n_dot_l=lut_n_dot_l,
-                                  lut_n_dot_h=lut_n_dot_h, lut_layers=lut_layers, lut_min_roughness=lut_min_roughness,
-                                  sectors=sector_layout(sectors=sectors))
+                                  shadow=inputs.get("shadow"), distribution=options.distribution,
+                                  light_chunk=options.light_chunk,
+                                  light_capacity=options.light_capacity, material_model=options.material_model,
+                                  lut_n_dot_l=options.lut_n_dot_l,
+                                  lut_n_dot_h=options.lut_n_dot_h, lut_layers=options.lut_layers,
+                                  lut_min_roughness=options.lut_min_roughness,
+                                  sectors=sector_layout(sectors=options.sectors))
     return {"hdr": hdr}, counters
 
 

@@ -16,18 +16,18 @@ from gpupro.shading.tiles import (LIGHT_TILE_TESTS, LIST_LAYOUT_OPTIONS, LIST_ME
 from gpupro.technique import Technique, register
 
 
-def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, depth_bounds, kernel,
-                   list_layout, list_memory_capacity):
+def apply_deferred(params, inputs, scene, options):
     """Tiled deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     shading = dict(ambient=params["ambient"], background=params["background"], shadow=inputs.get("shadow"),
-                   distribution=distribution, light_chunk=light_chunk, tile=tile, depth_bounds=depth_bounds)
+                   distribution=options.distribution, light_chunk=options.light_chunk, tile=options.tile,
+                   depth_bounds=options.depth_bounds)
     surface = {key: inputs[key] for key in DEFERRED_INPUTS}
-    if kernel == "single":
+    if options.kernel == "single":
         hdr, counters = shade_tiled_single(surface, inputs["view_depth"], scene.lights, scene.camera, **shading)
     else:
         hdr, counters = shade_tiled(surface, inputs["view_depth"], scene.lights, scene.camera,
-                                    tile_capacity=tile_capacity, list_layout=list_layout,
-                                    list_memory_capacity=list_memory_capacity, **shading)
+                                    tile_capacity=options.tile_capacity, list_layout=options.list_layout,
+                                    list_memory_capacity=options.list_memory_capacity, **shading)
     return {"hdr": hdr}, counters
 
 

@@ -391,14 +391,15 @@ def shade_tiled_culling(surface: dict, view_depth, lights: Lights, camera: Camer
     return hdr, culling_counters(surface["coverage"], culled, reached, evaluated, lights)
 
 
-def apply_deferred(params, inputs, scene, *, distribution, light_chunk, tile, tile_capacity, light_buffer,
-                   depth_partition, bounds, depth_reduction):
+def apply_deferred(params, inputs, scene, options):
     """Tiled deferred shading of the G-buffer ``inputs`` → ``hdr`` [H, W, 3]."""
     hdr, counters = shade_tiled_culling(
         {key: inputs[key] for key in DEFERRED_INPUTS}, inputs["view_depth"], scene.lights, scene.camera,
         ambient=params["ambient"], background=params["background"], shadow=inputs.get("shadow"),
-        distribution=distribution, light_chunk=light_chunk, tile=tile, tile_capacity=tile_capacity,
-        light_buffer=light_buffer, depth_partition=depth_partition, bounds=bounds, depth_reduction=depth_reduction)
+        distribution=options.distribution, light_chunk=options.light_chunk, tile=options.tile,
+        tile_capacity=options.tile_capacity,
+        light_buffer=options.light_buffer, depth_partition=options.depth_partition, bounds=options.bounds,
+        depth_reduction=options.depth_reduction)
     return {"hdr": hdr}, counters
 
 

@@ -177,39 +177,41 @@ def _layers(inputs) -> dict:
     return {key: inputs[f"translucent_{key}"] for key in SHADED}
 
 
-def apply(params, inputs, scene, *, light_lists, distribution, light_chunk, tile, tile_capacity, depth_bounds,
-          list_layout, list_memory_capacity, normal_bins, bounds, normal_cones, assignment, cluster_capacity,
-          cluster_light_capacity, tree_branching, frontier_capacity, grid_capacity, unique_clusters, page_size,
-          page_capacity, resolution_scale, pool_capacity, list_capacity):
+def apply(params, inputs, scene, options):
     """The translucent layers shaded with ``light_lists`` and blended over ``hdr`` → ``hdr_translucent`` [H, W, 3]."""
     layers, lights, camera, ambient = _layers(inputs), scene.lights, scene.camera, params["ambient"]
-    shading = dict(ambient=ambient, distribution=distribution, light_chunk=light_chunk)
-    layout = dict(list_layout=list_layout, list_memory_capacity=list_memory_capacity)
-    if light_lists == "tiled":
+    shading = dict(ambient=ambient, distribution=options.distribution, light_chunk=options.light_chunk)
+    layout = dict(list_layout=options.list_layout, list_memory_capacity=options.list_memory_capacity)
+    if options.light_lists == "tiled":
         radiance, counters = shade_layers_tiled(layers, inputs["view_depth"], inputs["coverage"], lights, camera,
-                                                tile=tile, tile_capacity=tile_capacity, depth_bounds=depth_bounds,
+                                                tile=options.tile, tile_capacity=options.tile_capacity,
+                                                depth_bounds=options.depth_bounds,
                                                 **layout, **shading)
-    elif light_lists == "clustered":
+    elif options.light_lists == "clustered":
         radiance, counters = shade_layers_clustered(
-            layers, lights, camera, tile=tile, normal_bins=normal_bins, bounds=bounds, normal_cones=normal_cones,
-            assignment=assignment, cluster_capacity=cluster_capacity, cluster_light_capacity=cluster_light_capacity,
-            tree_branching=tree_branching, frontier_capacity=frontier_capacity, grid_capacity=grid_capacity,
-            unique_clusters=unique_clusters, page_size=page_size, page_capacity=page_capacity, **layout, **shading)
+            layers, lights, camera, tile=options.tile, normal_bins=options.normal_bins, bounds=options.bounds,
+            normal_cones=options.normal_cones,
+            assignment=options.assignment, cluster_capacity=options.cluster_capacity,
+            cluster_light_capacity=options.cluster_light_capacity,
+            tree_branching=options.tree_branching, frontier_capacity=options.frontier_capacity,
+            grid_capacity=options.grid_capacity,
+            unique_clusters=options.unique_clusters, page_size=options.page_size, page_capacity=options.page_capacity,
+            **layout, **shading)
     else:
         radiance, counters = shade_layers_light_linked_list(
-            layers, inputs["view_depth"], inputs["coverage"], lights, camera, resolution_scale=resolution_scale,
-            pool_capacity=pool_capacity, list_capacity=list_capacity, **shading)
+            layers, inputs["view_depth"], inputs["coverage"], lights, camera, resolution_scale=options.resolution_scale,
+            pool_capacity=options.pool_capacity, list_capacity=options.list_capacity, **shading)
     hdr = composite(inputs["hdr"], radiance, layers["opacity"])
     unused = {c.name: jnp.int32(0) for c in COUNTERS}  # the counters of the structures not chosen
     return {"hdr_translucent": hdr}, dict(unused, **counters, translucent_fragments=_fragments(layers))
 
 
-def apply_reference(params, inputs, scene, *, distribution, light_chunk, light_loop):
+def apply_reference(params, inputs, scene, options):
     """The translucent layers shaded by every light and blended over ``hdr`` → ``hdr_translucent`` [H, W, 3]."""
     layers = _layers(inputs)
     radiance, counters = shade_layers_brute_force(layers, scene.lights, scene.camera, ambient=params["ambient"],
-                                                  distribution=distribution, light_chunk=light_chunk,
-                                                  light_loop=light_loop)
+                                                  distribution=options.distribution, light_chunk=options.light_chunk,
+                                                  light_loop=options.light_loop)
     return ({"hdr_translucent": composite(inputs["hdr"], radiance, layers["opacity"])},
             dict(counters, translucent_fragments=_fragments(layers)))
 

@@ -118,7 +118,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import (TERRAIN_KEYS, continuous_surface, draw_generated, frame_buffers, frame_outputs, height_normals,
+from gpupro.lod import (continuous_surface, draw_generated, frame_buffers, frame_outputs, height_normals,
                         terrain_height, terrain_materials)
 from gpupro.media.rays import pixel_rays
 from gpupro.numerics import dot3
@@ -126,7 +126,7 @@ from gpupro.raster.surface import bend_towards_viewer, normalize
 from gpupro.scene.mesh import Mesh
 from gpupro.shading.deferred import shade_deferred
 from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, Param, Technique, check_finite_params,
-                              integer, number, register, validate_options)
+                              integer, number, register)
 
 FOUR_POINT = (-1.0 / 16.0, 9.0 / 16.0, 9.0 / 16.0, -1.0 / 16.0)
 """Kobbelt's four-point interpolatory weights on the coarse samples I − 1 … I + 2 of an odd fine sample."""
@@ -470,37 +470,31 @@ def _shading(mesh: Mesh, scene, ambient):
 # The pass
 
 
-def _terrain(options) -> dict:
-    return {k: options[k] for k in TERRAIN_KEYS}
-
-
-def init_state(scene, *, clip_levels, grid_size, **_):
+def init_state(scene, options):
     """The first frame's state: no valid level (every active level is filled entirely), zero heights
     [L, n, n], origins int32 [L, 2]."""
-    return {"heights": jnp.zeros((clip_levels, grid_size, grid_size), jnp.float32),
-            "origins": jnp.zeros((clip_levels, 2), jnp.int32), "valid": jnp.zeros(clip_levels, bool)}
+    return {"heights": jnp.zeros((options.clip_levels, options.grid_size, options.grid_size), jnp.float32),
+            "origins": jnp.zeros((options.clip_levels, 2), jnp.int32), "valid": jnp.zeros(options.clip_levels, bool)}
 
 
-def apply(params, inputs, scene, state, *, clip_levels, grid_size, base_spacing, terrain_amplitude, terrain_wavelength,
-          terrain_octaves, terrain_seed, terrain_elevation, update_rows, level_colors, antialias):
+def apply(params, inputs, scene, state, options):
     """Update the clipmap for the viewer ``scene.camera.eye`` and draw it over the optional ``hdr`` [H, W, 3]
     and ``depth`` [H, W] → ``hdr_clipmaps``, ``depth_clipmaps``, ``coverage_clipmaps``, ``level_clipmaps``
     [H, W(, 3)]; ``state`` from :func:`init_state` or the last frame (None: a first frame)."""
-    terrain = dict(terrain_amplitude=terrain_amplitude, terrain_wavelength=terrain_wavelength,
-                   terrain_octaves=terrain_octaves, terrain_seed=terrain_seed, terrain_elevation=terrain_elevation)
-    levels = dict(clip_levels=clip_levels, grid_size=grid_size, base_spacing=base_spacing)
+    terrain, levels = options.group("terrain"), options.group("levels")
     if state is None:
-        state = init_state(scene, clip_levels=clip_levels, grid_size=grid_size)
+        state = init_state(scene, options)
     eye = scene.camera.eye
     extents = _extents(**levels)
-    active = _active(extents, _viewer_height(eye, terrain), params, clip_levels)
-    state, written, rebuilt = update_levels(state, eye, active, update_rows=update_rows, terrain=terrain, **levels)
+    active = _active(extents, _viewer_height(eye, terrain), params, options.clip_levels)
+    state, written, rebuilt = update_levels(state, eye, active, update_rows=options.update_rows, terrain=terrain,
+                                            **levels)
     mesh, face_levels, counters = clipmap_mesh(params, state["heights"], state["origins"], eye, active,
-                                               terrain=terrain, level_colors=level_colors, **levels)
-    colors = LEVEL_COLORS if level_colors else (TERRAIN_COLOR,)
+                                               terrain=terrain, level_colors=options.level_colors, **levels)
+    colors = LEVEL_COLORS if options.level_colors else (TERRAIN_COLOR,)
     materials = terrain_materials(colors)
     drawn, _ = draw_generated(mesh, materials, scene, background=params["background"], hdr=inputs.get("hdr"),
-                              depth=inputs.get("depth"), antialias=antialias, cull_backfaces=True,
+                              depth=inputs.get("depth"), antialias=options.antialias, cull_backfaces=True,
                               shade=_shading(mesh, scene, params["ambient"]))
     tri = drawn["triangle_id"]
     level = jnp.where(tri >= 0, face_levels[jnp.maximum(tri, 0)], -1).astype(jnp.float32)
@@ -514,10 +508,10 @@ def lod_cost(params, scene, **options) -> jax.Array:
     T_deg + T_trim) − T_deg − T_trim + T_fill with p_l = 1 − β_l; equal to ``triangles_drawn`` as σ → 0, and
     piecewise linear (smooth between the band edges) in κ and σ. Raises ``ValueError`` for unknown options or
     non-finite concrete params."""
-    options = validate_options(TECHNIQUE, options)
+    options = TECHNIQUE.options_of(options)
     check_finite_params(params, ("activation_factor", "activation_softness"), "lod_cost")
-    levels = {k: options[k] for k in ("clip_levels", "grid_size", "base_spacing")}
-    beta = level_morph(params, _extents(**levels), _viewer_height(scene.camera.eye, _terrain(options)),
+    levels = options.group("levels")
+    beta = level_morph(params, _extents(**levels), _viewer_height(scene.camera.eye, options.group("terrain")),
                        clip_levels=levels["clip_levels"])
     t = triangle_counts(grid_size=levels["grid_size"])
     per_level = t["ring"] + t["degenerate"] + t["trim"]
@@ -538,14 +532,18 @@ TECHNIQUE = register(Technique(
     outputs=_FRAME_OUTPUTS + (
              Buffer("level_clipmaps", "clipmap level l of the visible terrain triangle (0 finest), -1 elsewhere", "Y"),),
     options=(
-        Option("clip_levels", 11, integer(1, 24), "clipmap levels L (the chapter's 11)"),
-        Option("grid_size", 255, GRID_SIZE, "samples n per side of each level (2^k − 1; the chapter's 255)"),
-        Option("base_spacing", 1.0, number(0.0, strict_lo=True), "sample spacing s_0 of the finest level (world units)"),
-        Option("terrain_amplitude", 12.0, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])"),
-        Option("terrain_wavelength", 64.0, number(0.0, strict_lo=True), "λ of the terrain's first octave (world units)"),
-        Option("terrain_octaves", 6, integer(1), "octaves of the fBm terrain"),
-        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain"),
-        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)"),
+        Option("clip_levels", 11, integer(1, 24), "clipmap levels L (the chapter's 11)", group="levels"),
+        Option("grid_size", 255, GRID_SIZE, "samples n per side of each level (2^k − 1; the chapter's 255)",
+               group="levels"),
+        Option("base_spacing", 1.0, number(0.0, strict_lo=True),
+               "sample spacing s_0 of the finest level (world units)", group="levels"),
+        Option("terrain_amplitude", 12.0, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])",
+               group="terrain"),
+        Option("terrain_wavelength", 64.0, number(0.0, strict_lo=True),
+               "λ of the terrain's first octave (world units)", group="terrain"),
+        Option("terrain_octaves", 6, integer(1), "octaves of the fBm terrain", group="terrain"),
+        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain", group="terrain"),
+        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)", group="terrain"),
         Option("update_rows", 16, integer(1), "U: rows and columns of a level the incremental update writes per frame"),
         Option("level_colors", False, BOOLEAN, "colour each level's triangles (Figure 2-2) instead of one terrain colour"),
         Option("antialias", False, BOOLEAN, "blend the terrain's silhouettes analytically (gradients w.r.t. the vertices)"),

@@ -133,7 +133,7 @@ from gpupro.scene.camera import to_clip
 from gpupro.scene.mesh import Mesh
 from gpupro.shading.deferred import shade_deferred
 from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique,
-                              check_finite_params, integer, number, one_of, register, validate_options)
+                              check_finite_params, integer, number, one_of, register)
 
 MAX_SHIFT = 16
 """Largest level shift s (u = R·2^s), so that integer vertex coordinates stay far inside int32."""
@@ -537,61 +537,65 @@ def _texel_xz(axis, rows, cols):
     return jnp.meshgrid(axis[cols], axis[rows])
 
 
-def _erode_window(sub, rows, cols, inside, frame, salt, o):
+def _erode_window(sub, rows, cols, inside, frame, salt, options):
     def step(s, h):
         jitter = None
-        if o["erosion_jitter"] > 0:
-            key = jnp.uint32(salt) ^ (frame * o["erosion_steps"] + s).astype(jnp.uint32) * jnp.uint32(0x9E3779B1)
-            jitter = o["erosion_jitter"] * hash_uniform(rows[:, None], cols[None, :], key)
-        return erode(h, sub["flowability"], spacing=o["map_spacing"], repose_slope=o["repose_slope"], region=inside,
+        if options["erosion_jitter"] > 0:
+            key = jnp.uint32(salt) ^ (frame * options["erosion_steps"] + s).astype(jnp.uint32) * jnp.uint32(0x9E3779B1)
+            jitter = options["erosion_jitter"] * hash_uniform(rows[:, None], cols[None, :], key)
+        return erode(h, sub["flowability"], spacing=options["map_spacing"], repose_slope=options["repose_slope"],
+                     region=inside,
                      jitter=jitter)
 
-    return {**sub, "height": jax.lax.fori_loop(0, o["erosion_steps"], step, sub["height"])}
+    return {**sub, "height": jax.lax.fori_loop(0, options["erosion_steps"], step, sub["height"])}
 
 
-def modify(state, o):
+def modify(state, options):
     """One frame of terrain modification: the plough, then the wheel, each in its window with erosion
-    (module docstring). ``state``: the frame state; ``o``: the technique's options. Returns (state,
+    (module docstring). ``state``: the frame state; ``options``: the technique's options. Returns (state,
     counters): ``window_overflow``, the texels of the work regions outside their windows, and
     ``window_needed``, the longest side (texels) of a work region, the window that would have held it."""
     maps = {k: state[k] for k in ("height", "flowability", "compression")}
-    n, spacing, frame = o["map_size"], o["map_spacing"], state["frame"]
+    n, spacing, frame = options["map_size"], options["map_spacing"], state["frame"]
     xs = map_coordinates(map_size=n, map_spacing=spacing)
-    margin = o["erosion_steps"] + 1
+    margin = options["erosion_steps"] + 1
     overflow, needed = jnp.int32(0), jnp.int32(0)
-    fbm = dict(amplitude=o["height_amplitude"], wavelength=o["height_wavelength"], octaves=o["height_octaves"],
-               seed=o["height_seed"])
-    plough_path, wheel_path = _path(o["plough_path"]), _path(o["wheel_path"])
+    fbm = dict(amplitude=options["height_amplitude"], wavelength=options["height_wavelength"],
+               octaves=options["height_octaves"],
+               seed=options["height_seed"])
+    plough_path, wheel_path = _path(options["plough_path"]), _path(options["wheel_path"])
     if plough_path:
-        origin, direction, length = _tool_step(plough_path, frame, o["tool_speed"])
-        region = _region(origin, direction, (0.0, length + o["plough_heap"]), 0.5 * o["plough_width"], margin, n, spacing)
+        origin, direction, length = _tool_step(plough_path, frame, options["tool_speed"])
+        region = _region(origin, direction, (0.0, length + options["plough_heap"]), 0.5 * options["plough_width"],
+                         margin, n, spacing)
 
         def work(sub, rows, cols, inside):
             x, z = _texel_xz(xs, rows, cols)
-            floor = fbm_height(x, z, **fbm) - o["plough_depth"]
+            floor = fbm_height(x, z, **fbm) - options["plough_depth"]
             height, heap = plough(sub["height"], x, z, origin=origin, direction=direction, length=length,
-                                  width=o["plough_width"], floor=floor, heap_length=o["plough_heap"])
+                                  width=options["plough_width"], floor=floor, heap_length=options["plough_heap"])
             sub = {**sub, "height": height, "flowability": jnp.where(heap > 0, 1.0, sub["flowability"])}
             a, c = _track(x, z, origin, direction)
-            behind = (a <= length) & (jnp.abs(c) <= 0.5 * o["plough_width"])  # the blade holds the heap back
-            return _erode_window(sub, rows, cols, inside & ~behind, frame, 0x51ED270B, o)
+            behind = (a <= length) & (jnp.abs(c) <= 0.5 * options["plough_width"])  # the blade holds the heap back
+            return _erode_window(sub, rows, cols, inside & ~behind, frame, 0x51ED270B, options)
 
-        maps, lost = _in_window(maps, region, o["modification_window"], work)
+        maps, lost = _in_window(maps, region, options["modification_window"], work)
         overflow, needed = overflow + lost, jnp.maximum(needed, _longest_side(region))
     if wheel_path:
-        origin, direction, length = _tool_step(wheel_path, frame, o["tool_speed"])
-        radius = o["wheel_radius"]
-        region = _region(origin, direction, (-radius, length + radius), o["wheel_width"], margin, n, spacing)
+        origin, direction, length = _tool_step(wheel_path, frame, options["tool_speed"])
+        radius = options["wheel_radius"]
+        region = _region(origin, direction, (-radius, length + radius), options["wheel_width"], margin, n, spacing)
 
         def work(sub, rows, cols, inside):
             x, z = _texel_xz(xs, rows, cols)
             height, compression = wheel(sub["height"], sub["compression"], x, z, origin=origin, direction=direction,
-                                        length=length, radius=radius, width=o["wheel_width"], sink=o["wheel_sink"],
-                                        push=o["wheel_push"])
+                                        length=length, radius=radius, width=options["wheel_width"],
+                                        sink=options["wheel_sink"],
+                                        push=options["wheel_push"])
             return _erode_window({**sub, "height": height, "compression": compression}, rows, cols, inside, frame,
-                                 0x2545F491, o)
+                                 0x2545F491, options)
 
-        maps, lost = _in_window(maps, region, o["modification_window"], work)
+        maps, lost = _in_window(maps, region, options["modification_window"], work)
         overflow, needed = overflow + lost, jnp.maximum(needed, _longest_side(region))
     return {**state, **maps, "frame": frame + 1}, {"window_overflow": overflow, "window_needed": needed}
 
@@ -606,79 +610,72 @@ def _checked(options):
     return options
 
 
-def init_state(scene, **options):
+def init_state(scene, options):
     """The first frame's state: the fBm height map [N, N] (world units), flowability [N, N] (the
     ``flowability`` option), compression [N, N] (0) and the frame number 0."""
-    o = _checked(options)
-    axis = map_coordinates(map_size=o["map_size"], map_spacing=o["map_spacing"])
+    options = _checked(options)
+    axis = map_coordinates(map_size=options["map_size"], map_spacing=options["map_spacing"])
     x, z = jnp.meshgrid(axis, axis)
-    heights = fbm_height(x, z, amplitude=o["height_amplitude"],
-                         wavelength=o["height_wavelength"], octaves=o["height_octaves"], seed=o["height_seed"])
+    heights = fbm_height(x, z, amplitude=options["height_amplitude"],
+                         wavelength=options["height_wavelength"], octaves=options["height_octaves"],
+                         seed=options["height_seed"])
     shape = heights.shape
-    return {"height": heights, "flowability": jnp.full(shape, o["flowability"], jnp.float32),
+    return {"height": heights, "flowability": jnp.full(shape, options["flowability"], jnp.float32),
             "compression": jnp.zeros(shape, jnp.float32), "frame": jnp.int32(0)}
 
 
-def _mesh_options(o):
-    return {k: o[k] for k in ("quad_resolution", "level_size", "level_count", "center_levels", "shift_height")} | {
-        "map_spacing": o["map_spacing"]}
-
-
-def _frame_mesh(params, scene, heights, o):
+def _frame_mesh(params, scene, heights, options):
     """The ring mesh, the side meshes' visibility bool [4] and the per-face drawn mask bool [F]."""
-    top = ring_topology(level_size=o["level_size"], level_count=o["level_count"], center_levels=o["center_levels"])
-    mesh = terrain_mesh(heights, scene.camera.eye, params["morph_start"], params["morph_end"], **_mesh_options(o))
-    if o["cull_meshes"]:
+    top = ring_topology(level_size=options["level_size"], level_count=options["level_count"],
+                        center_levels=options["center_levels"])
+    mesh = terrain_mesh(heights, scene.camera.eye, params["morph_start"], params["morph_end"], **options.group("mesh"))
+    if options["cull_meshes"]:
         visible = side_visibility(mesh, scene.camera.view_projection(), jnp.stack([jnp.min(heights), jnp.max(heights)]),
-                                  level_size=o["level_size"], level_count=o["level_count"],
-                                  center_levels=o["center_levels"])
+                                  level_size=options["level_size"], level_count=options["level_count"],
+                                  center_levels=options["center_levels"])
     else:
         visible = jnp.ones(4, bool)
     drawn = jnp.concatenate([jnp.ones(1, bool), visible])[jnp.asarray(top.mesh)]
     return top, mesh, visible, drawn
 
 
-def apply(params, inputs, scene, state, *, quad_resolution, level_size, level_count, center_levels, shift_height,
-          map_size, map_spacing, height_amplitude, height_wavelength, height_octaves, height_seed, flowability,
-          repose_slope, erosion_steps, erosion_jitter, plough_path, plough_width, plough_depth, plough_heap, wheel_path,
-          wheel_radius, wheel_width, wheel_sink, wheel_push, tool_speed, modification_window, cull_meshes, coloring,
-          antialias):
+def apply(params, inputs, scene, state, options):
     """Modifies the terrain of ``state`` (None: a first frame) and draws it over the optional ``hdr`` [H, W, 3]
     and ``depth`` [H, W] → ``hdr_gpu_terrain`` [H, W, 3], ``depth_gpu_terrain``, ``coverage_gpu_terrain``,
     ``level_gpu_terrain`` [H, W] and ``height_map_gpu_terrain`` [N, N]; counters and the next state."""
-    o = _checked(dict(locals()))
-    o.pop("params"), o.pop("inputs"), o.pop("scene"), o.pop("state")
+    options = _checked(options)
     if state is None:
-        state = init_state(scene, **o)
-    state, windows = modify(state, o)
+        state = init_state(scene, options)
+    state, windows = modify(state, options)
     heights = state["height"]
-    top, mesh, visible, drawn = _frame_mesh(params, scene, heights, o)
+    top, mesh, visible, drawn = _frame_mesh(params, scene, heights, options)
     faces = jnp.where(drawn[:, None], jnp.asarray(top.faces), 0)  # culled meshes: degenerate, skipped
-    uv = (mesh.positions[:, jnp.array([0, 2])] / (map_size * map_spacing)) + 0.5
-    if coloring == "terrain":
+    uv = (mesh.positions[:, jnp.array([0, 2])] / (options.map_size * options.map_spacing)) + 0.5
+    if options.coloring == "terrain":
         colors, ids = np.array([_SOIL]), np.zeros_like(top.mesh)
     else:
-        ids = top.face_level if coloring == "levels" else top.mesh
-        colors = _PALETTE[np.arange(level_count if coloring == "levels" else 5) % len(_PALETTE)]
+        ids = top.face_level if options.coloring == "levels" else top.mesh
+        colors = _PALETTE[np.arange(options.level_count if options.coloring == "levels" else 5) % len(_PALETTE)]
     materials = terrain_materials(colors)
     generated = Mesh(mesh.positions, faces, mesh.normals, uv, jnp.asarray(ids, jnp.int32))
     buffers, _ = draw_generated(generated, materials, scene, background=params["background"], hdr=inputs.get("hdr"),
-                                depth=inputs.get("depth"), antialias=antialias,
+                                depth=inputs.get("depth"), antialias=options.antialias,
                                 shade=_ray_hit_shading(generated, scene, params["ambient"]))
     level_of_face = jnp.asarray(top.face_level, jnp.float32)
     level_image = jnp.where(buffers["triangle_id"] >= 0, level_of_face[jnp.maximum(buffers["triangle_id"], 0)], -1.0)
-    sides = level_count > center_levels
+    sides = options.level_count > options.center_levels
     side_drawn = jnp.sum(visible) if sides else jnp.int32(0)
-    counts = triangle_counts(level_size=level_size, level_count=level_count, center_levels=center_levels)
+    counts = triangle_counts(level_size=options.level_size, level_count=options.level_count,
+                             center_levels=options.center_levels)
     counters = {
         "triangles_drawn": (counts["mesh0"] + counts["side"] * side_drawn).astype(jnp.int32),
         "meshes_drawn": (1 + side_drawn).astype(jnp.int32),
         "meshes_culled": ((4 - side_drawn) if sides else jnp.int32(0)).astype(jnp.int32),
-        "levels_active": jnp.where(side_drawn > 0, level_count, center_levels).astype(jnp.int32),
+        "levels_active": jnp.where(side_drawn > 0, options.level_count, options.center_levels).astype(jnp.int32),
         "level_shift": mesh.shift,
         "window_overflow": windows["window_overflow"].astype(jnp.int32),
         "window_needed": windows["window_needed"].astype(jnp.int32),
-        "terrain_volume": (jnp.sum(heights) * map_spacing**2).astype(jnp.float32),
+        "terrain_volume": (jnp.sum(heights) * options.map_spacing**2).astype(jnp.float32),
     }
     outputs = {**frame_outputs("gpu_terrain", buffers), "level_gpu_terrain": level_image,
                "height_map_gpu_terrain": heights}
@@ -694,17 +691,18 @@ def lod_cost(params, scene, *, state=None, **options):
     past every triangle) it is the ``triangles_drawn`` counter. Raises ``ValueError`` for unknown or bad
     options and non-finite concrete params."""
     check_finite_params(params, ("morph_start", "morph_end"), "lod_cost")
-    o = _checked(validate_options(TECHNIQUE, options))
-    state = init_state(scene, **o) if state is None else state
-    top, mesh, _, drawn = _frame_mesh(params, scene, state["height"], o)
+    options = _checked(TECHNIQUE.options_of(options))
+    state = init_state(scene, options) if state is None else state
+    top, mesh, _, drawn = _frame_mesh(params, scene, state["height"], options)
     corners = mesh.positions[jnp.asarray(top.faces)]  # [F, 3, 3]
     centroid = jnp.mean(corners, axis=1)
     eye = jnp.asarray(scene.camera.eye, jnp.float32)
     distance = jnp.maximum(jnp.abs(centroid[:, 0] - eye[0]), jnp.abs(centroid[:, 2] - eye[2]))
     level = jnp.asarray(top.face_level)
-    alpha = morph_band(distance, level, unit=mesh.unit, level_size=o["level_size"], morph_start=params["morph_start"],
+    alpha = morph_band(distance, level, unit=mesh.unit, level_size=options["level_size"],
+                       morph_start=params["morph_start"],
                        morph_end=params["morph_end"])
-    alpha = jnp.where(level < o["level_count"] - 1, alpha, 0.0)
+    alpha = jnp.where(level < options["level_count"] - 1, alpha, 0.0)
     return jnp.sum(jnp.where(drawn, 1.0 - 0.75 * alpha, 0.0)).astype(jnp.float32)
 
 
@@ -722,14 +720,19 @@ TECHNIQUE = register(Technique(
              Buffer("level_gpu_terrain", "level index of the visible terrain triangle, -1 where none", "Y"),
              Buffer("height_map_gpu_terrain", "the modified height map [N, N] (world units; rows along z)", image=False)),
     options=(
-        Option("quad_resolution", 0.1, number(0.0, strict_lo=True), "R: quad edge of level 0 (world units)"),
+        Option("quad_resolution", 0.1, number(0.0, strict_lo=True), "R: quad edge of level 0 (world units)",
+               group="mesh"),
         Option("level_size", 100, Check(lambda v: integer(32).test(v) and v % 4 == 0, "a multiple of 4 >= 32"),
-               "S: quads along a level's edge (level 0 is S x S quads)"),
-        Option("level_count", 8, integer(1, 24), "L: number of resolution levels (quad edge doubles per level)"),
-        Option("center_levels", 4, integer(1, 24), "L_c: levels 0 .. L_c-1 in the always drawn centre mesh (<= L)"),
-        Option("shift_height", 5.0, number(0.0), "h_s of the level shift floor(ln(1 + height above ground / h_s)); 0: none"),
+               "S: quads along a level's edge (level 0 is S x S quads)", group="mesh"),
+        Option("level_count", 8, integer(1, 24), "L: number of resolution levels (quad edge doubles per level)",
+               group="mesh"),
+        Option("center_levels", 4, integer(1, 24), "L_c: levels 0 .. L_c-1 in the always drawn centre mesh (<= L)",
+               group="mesh"),
+        Option("shift_height", 5.0, number(0.0),
+               "h_s of the level shift floor(ln(1 + height above ground / h_s)); 0: none", group="mesh"),
         Option("map_size", 2048, integer(2), "N: height map texels per side"),
-        Option("map_spacing", 0.1, number(0.0, strict_lo=True), "height map texel spacing (world units), centred on the origin"),
+        Option("map_spacing", 0.1, number(0.0, strict_lo=True),
+               "height map texel spacing (world units), centred on the origin", group="mesh"),
         Option("height_amplitude", 5.0, number(0.0), "initial fBm terrain amplitude (world units)"),
         Option("height_wavelength", 60.0, number(0.0, strict_lo=True), "initial fBm first-octave wavelength (world units)"),
         Option("height_octaves", 6, integer(1, 16), "initial fBm octaves"),

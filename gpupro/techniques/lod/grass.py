@@ -108,9 +108,8 @@ from gpupro.scene.mesh import Mesh, concatenate_meshes
 from gpupro.scene.procedural import primitive_mesh
 from gpupro.shading.deferred import shade_deferred
 from gpupro.sort import radix_sort
-from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Param, Technique,
-                              check_finite_params, integer, number, optional, outside_trace, register,
-                              validate_options)
+from gpupro.technique import (BOOLEAN, Buffer, Capacity, Check, Counter, Option, OptionError, Options, Param, Technique,
+                              check_finite_params, integer, number, optional, outside_trace, register)
 
 BLADE_TYPES = (
     # probability, length range (m), lean θ_0 at the root and θ_1 at the tip (radians)
@@ -153,10 +152,6 @@ class Blades(typing.NamedTuple):
     ground_positions: np.ndarray
     ground_normals: np.ndarray
     ground_faces: np.ndarray
-
-
-GROWTH_KEYS = ("masters", "slaves_per_master", "knots", "field_size", "grass_seed", "blade_scale", "blade_width",
-               "slave_perturbation", "ground_cells") + TERRAIN_KEYS
 
 
 def _grow(key) -> Blades:
@@ -218,8 +213,7 @@ def grow_blades(*, masters, slaves_per_master, knots, field_size, grass_seed, bl
                 terrain_elevation) -> Blades:
     """The lawn grown from these options (module docstring, "Growing"): :class:`Blades` of NumPy arrays
     (M = ``masters`` blades of N = ``knots`` knots, S = ``slaves_per_master``), cached per options."""
-    options = dict(locals())
-    return _grown(tuple((k, options[k]) for k in GROWTH_KEYS))
+    return _grown(tuple(locals().items()))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -358,10 +352,6 @@ def _step_chunk(x, previous, rest, jitter, phase, valid, seconds, centres, radii
     moved = _collide(moved, centres, radii)
     keep = valid[:, None, None]
     return jnp.where(keep, moved, x), jnp.where(keep, x, previous)
-
-
-SIMULATION_KEYS = ("wind_acceleration", "stiffness", "gravity", "time_step", "damping", "constraint_iterations",
-                   "wind_perturbation", "wind_frequency")
 
 
 def simulation_step(state, blades: Blades, order, active, *, spheres, sphere_velocities, simulation_chunk, terrain,
@@ -549,11 +539,12 @@ SPHERES = Check(lambda v: (g := _groups(v, 4)) is not None and all(s[3] >= 0.0 f
 VELOCITIES = Check(lambda v: _groups(v, 3) is not None, "velocities (vx, vy, vz), or a string 'vx, vy, vz; ...'")
 
 
-def _checked(options) -> dict:
+def _checked(options: Options) -> Options:
     """The options with the vector and sphere options parsed; refuses combinations that cannot work,
     naming the option."""
-    options = dict(options, wind_acceleration=_numbers(options["wind_acceleration"], 3), spheres=_groups(options["spheres"], 4),
-                   sphere_velocities=_groups(options["sphere_velocities"], 3))
+    options = options.replace(wind_acceleration=_numbers(options["wind_acceleration"], 3),
+                              spheres=_groups(options["spheres"], 4),
+                              sphere_velocities=_groups(options["sphere_velocities"], 3))
     if options["sphere_velocities"] and len(options["sphere_velocities"]) != len(options["spheres"]):
         raise OptionError("sphere_velocities", f"expected one velocity per sphere ({len(options['spheres'])}), "
                           f"got {len(options['sphere_velocities'])}")
@@ -566,11 +557,11 @@ def _sphere_arrays(options):
     return spheres, np.asarray(velocities, np.float32).reshape(-1, 3)
 
 
-def _growth(options) -> Blades:
-    return grow_blades(**{k: options[k] for k in GROWTH_KEYS})
+def _growth(options: Options) -> Blades:
+    return grow_blades(**options.group("growth"))
 
 
-def init_state(scene, **options):
+def init_state(scene, options):
     """The first frame's state: the masters at rest, ``positions`` = ``previous`` = the rest knots [M, N, 3],
     ``frame`` 0."""
     rest = jnp.asarray(_growth(options).rest)
@@ -587,43 +578,36 @@ def _lod(params, blades, positions, camera, options):
     return keys, order, count, scan, lod_weights(keys, threshold, temperature)
 
 
-def apply(params, inputs, scene, state, *, masters, slaves_per_master, knots, field_size, grass_seed, blade_scale,
-          blade_width, slave_perturbation, slave_lag, terrain_amplitude, terrain_wavelength, terrain_octaves, terrain_seed,
-          terrain_elevation, max_distance, blade_capacity, simulation_chunk, constraint_iterations, stiffness, gravity,
-          time_step, damping, wind_acceleration, wind_perturbation, wind_frequency, spheres, sphere_velocities, draw_spheres,
-          ground, ground_cells, antialias):
+def apply(params, inputs, scene, state, options):
     """Simulate the lawn one step for the viewer ``scene.camera`` and draw it over the optional ``hdr``
     [H, W, 3] and ``depth`` [H, W] → ``hdr_grass``, ``depth_grass``, ``coverage_grass``, ``lod_weight_grass``
     [H, W(, 3)] and ``lod_scan_grass`` int32 [257]; ``state`` from :func:`init_state` or the last frame
     (None: a first frame)."""
-    options = dict(locals())
-    for name in ("params", "inputs", "scene", "state"):
-        options.pop(name)
     options = _checked(options)
     blades = _growth(options)
     if state is None:
-        state = init_state(scene, **options)
+        state = init_state(scene, options)
     camera = scene.camera
     keys, order, count, scan, weights = _lod(params, blades, state["positions"], camera, options)
-    terrain = {k: options[k] for k in TERRAIN_KEYS}
+    terrain = options.group("terrain")
     sphere_array, velocity_array = _sphere_arrays(options)
     state = simulation_step(state, blades, order, count, spheres=sphere_array, sphere_velocities=velocity_array,
-                            simulation_chunk=simulation_chunk, terrain=terrain,
-                            **{k: options[k] for k in SIMULATION_KEYS})
-    capacity = min(blade_capacity, masters)
+                            simulation_chunk=options.simulation_chunk, terrain=terrain,
+                            **options.group("simulation"))
+    capacity = min(options.blade_capacity, options.masters)
     shown = order[:capacity]
     drawn = jnp.arange(capacity) < count
     strands = state["positions"][shown]
     slaves = slave_positions(strands, state["previous"][shown], jnp.asarray(blades.slave_offset)[shown],
-                             jnp.asarray(blades.slave_tip)[shown], slave_lag=slave_lag)
-    per_master = 1 + slaves_per_master
-    strands = jnp.concatenate([strands[:, None], slaves], axis=1).reshape(capacity * per_master, knots, 3)
+                             jnp.asarray(blades.slave_tip)[shown], slave_lag=options.slave_lag)
+    per_master = 1 + options.slaves_per_master
+    strands = jnp.concatenate([strands[:, None], slaves], axis=1).reshape(capacity * per_master, options.knots, 3)
     repeat = lambda a: jnp.repeat(a, per_master, axis=0)
     ribbons = blade_mesh(strands, repeat(jnp.asarray(blades.binormal)[shown]),
                          jnp.asarray(blades.width)[shown].reshape(-1), repeat(weights[shown]), repeat(drawn))
-    centres, radii = sphere_centres(state["frame"].astype(jnp.float32) * time_step, spheres=sphere_array,
+    centres, radii = sphere_centres(state["frame"].astype(jnp.float32) * options.time_step, spheres=sphere_array,
                                     sphere_velocities=velocity_array, terrain=terrain)
-    scenery = scenery_mesh(blades, centres, radii, ground=ground, draw_spheres=draw_spheres)
+    scenery = scenery_mesh(blades, centres, radii, ground=options.ground, draw_spheres=options.draw_spheres)
     # make_materials on host values (it validates them); the colours are the params, applied by the shading.
     behind, depth = inputs.get("hdr"), inputs.get("depth")
     if behind is None:
@@ -631,23 +615,23 @@ def apply(params, inputs, scene, state, *, masters, slaves_per_master, knots, fi
     covered = 0.0
     if scenery is not None:
         drawn_scenery, _ = draw_generated(scenery, make_materials([[1.0, 1.0, 1.0]] * 2, roughness=[0.9, 0.5]), scene,
-                                          hdr=behind, depth=depth, antialias=antialias,
+                                          hdr=behind, depth=depth, antialias=options.antialias,
                                           shade=lambda g: shade_scenery(g, scene, params, terrain=terrain))
         behind, depth, covered = drawn_scenery["hdr"], drawn_scenery["depth"], drawn_scenery["coverage"]
     drawn_lawn, _ = draw_generated(ribbons, make_materials([[1.0, 1.0, 1.0]], roughness=[0.9]), scene, hdr=behind,
-                                   depth=depth, antialias=antialias,
+                                   depth=depth, antialias=options.antialias,
                                    shade=lambda g: shade_blades(g, behind, scene, params))
     triangle = drawn_lawn["triangle_id"]
-    blade_of = jnp.maximum(triangle, 0) // (2 * (knots - 1)) // per_master
+    blade_of = jnp.maximum(triangle, 0) // (2 * (options.knots - 1)) // per_master
     lod_weight = jnp.where(triangle >= 0, weights[shown][blade_of], 0.0)
     drawn_lawn = dict(drawn_lawn, coverage=jnp.maximum(covered, drawn_lawn["coverage"]))
     outputs = {**frame_outputs("grass", drawn_lawn), "lod_weight_grass": lod_weight, "lod_scan_grass": scan}
     shown_masters = jnp.minimum(count, capacity)
     fixed = 0 if scenery is None else scenery.num_faces  # ground and spheres
-    counters = {"triangles_drawn": (fixed + 2 * (knots - 1) * per_master * shown_masters).astype(jnp.int32),
+    counters = {"triangles_drawn": (fixed + 2 * (options.knots - 1) * per_master * shown_masters).astype(jnp.int32),
                 "blades_drawn": (per_master * shown_masters).astype(jnp.int32), "blades_simulated": count,
                 "blades_selected": count, "blade_overflow": jnp.maximum(count - capacity, 0).astype(jnp.int32),
-                "lod_ratio": count.astype(jnp.float32) / masters}
+                "lod_ratio": count.astype(jnp.float32) / options.masters}
     return outputs, counters, state
 
 
@@ -656,7 +640,7 @@ def lod_cost(params, scene, **options) -> jax.Array:
     ``scene.camera``, with the technique's ``params`` (``lod_threshold``, ``lod_temperature``) and options
     (defaults filled in); equals (1 + S) × the radix-sort count n as the temperature → 0 (away from bucket
     edges) and at 0. Raises ``ValueError`` for unknown options or non-finite concrete params."""
-    options = validate_options(TECHNIQUE, options)
+    options = TECHNIQUE.options_of(options)
     check_finite_params(params, ("lod_threshold", "lod_temperature"), "lod_cost")
     blades = _growth(options)
     _, _, _, _, weights = _lod(params, blades, jnp.asarray(blades.rest), scene.camera, options)
@@ -678,38 +662,52 @@ TECHNIQUE = register(Technique(
              Buffer("lod_scan_grass", "int32 [257]: exclusive scan of the 8-bit LOD key histogram, total appended",
                     image=False)),
     options=(
-        Option("masters", 32768, integer(1), "master blades M, simulated (the chapter's 32,768)"),
-        Option("slaves_per_master", 4, integer(0), "slave blades S per master (the chapter's 1:4)"),
-        Option("knots", 16, integer(2), "knots N per blade (the chapter's 16: 15 quads, 30 triangles)"),
-        Option("field_size", 16.0, number(0.0, strict_lo=True), "side F of the square lawn centred on the origin (world units)"),
-        Option("grass_seed", 0, integer(0), "seed of the growing (roots, types, lengths, perturbations)"),
-        Option("blade_scale", 1.0, number(0.0, strict_lo=True), "scale of the blade types' lengths (0.08–0.3 m) and widths"),
-        Option("blade_width", 0.006, number(0.0, strict_lo=True), "mean root width of a blade before blade_scale (world units)"),
-        Option("slave_perturbation", 0.15, number(0.0, 1.0), "largest slave tip offset |δ| as a fraction of the blade length"),
+        Option("masters", 32768, integer(1), "master blades M, simulated (the chapter's 32,768)", group="growth"),
+        Option("slaves_per_master", 4, integer(0), "slave blades S per master (the chapter's 1:4)", group="growth"),
+        Option("knots", 16, integer(2), "knots N per blade (the chapter's 16: 15 quads, 30 triangles)", group="growth"),
+        Option("field_size", 16.0, number(0.0, strict_lo=True),
+               "side F of the square lawn centred on the origin (world units)", group="growth"),
+        Option("grass_seed", 0, integer(0), "seed of the growing (roots, types, lengths, perturbations)",
+               group="growth"),
+        Option("blade_scale", 1.0, number(0.0, strict_lo=True),
+               "scale of the blade types' lengths (0.08–0.3 m) and widths", group="growth"),
+        Option("blade_width", 0.006, number(0.0, strict_lo=True),
+               "mean root width of a blade before blade_scale (world units)", group="growth"),
+        Option("slave_perturbation", 0.15, number(0.0, 1.0),
+               "largest slave tip offset |δ| as a fraction of the blade length", group="growth"),
         Option("slave_lag", 1.0, number(0.0), "λ: steps of the master's velocity its slaves' tips lag behind"),
-        Option("terrain_amplitude", 0.3, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])"),
-        Option("terrain_wavelength", 8.0, number(0.0, strict_lo=True), "λ of the terrain's first octave (world units)"),
-        Option("terrain_octaves", 4, integer(1), "octaves of the fBm terrain"),
-        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain"),
-        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)"),
+        Option("terrain_amplitude", 0.3, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])",
+               group=("growth", "terrain")),
+        Option("terrain_wavelength", 8.0, number(0.0, strict_lo=True),
+               "λ of the terrain's first octave (world units)", group=("growth", "terrain")),
+        Option("terrain_octaves", 4, integer(1), "octaves of the fBm terrain", group=("growth", "terrain")),
+        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain", group=("growth", "terrain")),
+        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)", group=("growth",
+                                                                                                           "terrain")),
         Option("max_distance", None, optional(number(0.0, strict_lo=True)),
                "D_max of the 8-bit distance keys (world units); none: the camera's far distance"),
         Option("blade_capacity", 32768, integer(1), "masters drawn at most, each with its slaves (nearest first)"),
         Option("simulation_chunk", 4096, integer(1), "sorted masters per simulation chunk (chunks past the LOD count are skipped)"),
-        Option("constraint_iterations", 3, integer(1), "iterations of the local shape, length and collision constraints (the chapter's 2–3)"),
-        Option("stiffness", 0.7, number(0.0, 1.0), "s: local shape stiffness, the fraction of the way to the rest shape per sweep"),
-        Option("gravity", 9.81, number(), "g: gravitational acceleration along −y (world units/s²)"),
-        Option("time_step", 1.0 / 60.0, number(0.0, strict_lo=True), "Δt: seconds per frame"),
-        Option("damping", 0.1, number(0.0, 1.0), "fraction of the Verlet velocity lost per step"),
-        Option("wind_acceleration", (10.0, 0.0, 0.0), VECTOR, "W: knot i moves by t_i Δt² W per step (world units/s²)"),
-        Option("wind_perturbation", 0.3, number(0.0, 1.0), "p: relative perturbation of the wind's magnitude and direction per blade"),
-        Option("wind_frequency", 0.5, number(0.0), "f: frequency of the wind magnitude's per-blade oscillation (Hz)"),
+        Option("constraint_iterations", 3, integer(1),
+               "iterations of the local shape, length and collision constraints (the chapter's 2–3)", group="simulation"),
+        Option("stiffness", 0.7, number(0.0, 1.0),
+               "s: local shape stiffness, the fraction of the way to the rest shape per sweep", group="simulation"),
+        Option("gravity", 9.81, number(), "g: gravitational acceleration along −y (world units/s²)",
+               group="simulation"),
+        Option("time_step", 1.0 / 60.0, number(0.0, strict_lo=True), "Δt: seconds per frame", group="simulation"),
+        Option("damping", 0.1, number(0.0, 1.0), "fraction of the Verlet velocity lost per step", group="simulation"),
+        Option("wind_acceleration", (10.0, 0.0, 0.0), VECTOR,
+               "W: knot i moves by t_i Δt² W per step (world units/s²)", group="simulation"),
+        Option("wind_perturbation", 0.3, number(0.0, 1.0),
+               "p: relative perturbation of the wind's magnitude and direction per blade", group="simulation"),
+        Option("wind_frequency", 0.5, number(0.0), "f: frequency of the wind magnitude's per-blade oscillation (Hz)",
+               group="simulation"),
         Option("spheres", ((0.0, 0.5, 0.0, 0.5),), SPHERES,
                "collision spheres [x, y above the terrain, z, radius] (world units)"),
         Option("sphere_velocities", (), VELOCITIES, "velocity [vx, vy, vz] of each sphere (world units/s); empty: at rest"),
         Option("draw_spheres", True, BOOLEAN, "draw the collision spheres (16 × 8 UV spheres)"),
         Option("ground", True, BOOLEAN, "draw the terrain under the lawn (a ground_cells² grid)"),
-        Option("ground_cells", 64, integer(1), "cells per side of the ground grid"),
+        Option("ground_cells", 64, integer(1), "cells per side of the ground grid", group="growth"),
         Option("antialias", False, BOOLEAN, "blend silhouettes analytically (gradients w.r.t. the vertices)"),
     ),
     params=(

@@ -141,7 +141,7 @@ from gpupro.scene.camera import to_clip
 from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh
 from gpupro.technique import (BOOLEAN, Buffer, Check, Counter, Option, OptionError, Param, Technique, integer, number,
-                              one_of, optional, register, validate_options)
+                              one_of, optional, register)
 
 MAX_WAVE_NUMBER = 4
 """Largest |m|, |n| of a map's waves (cycles per tile): at least 2 texels per cycle from S = 8 up."""
@@ -480,7 +480,7 @@ def lod_cost(params, scene, **options):
     smooth (piecewise linear) in ``mip_distance`` and ``blend_width``. ``params``: the pass's params
     dict; ``options``: the technique's options (defaults filled in), ``cost_smoothing`` δ among them;
     as δ → 0 it equals the ``texture_fetches`` counter."""
-    options = validate_options(TECHNIQUE, options)
+    options = TECHNIQUE.options_of(options)
     check_options(**options)
     levels = levels_of(**options)
     _, distance, inside, _ = _grid(params, scene, options)
@@ -490,23 +490,16 @@ def lod_cost(params, scene, **options):
     return jnp.sum(jnp.where(inside, 1.0 + extra, 0.0)).astype(jnp.float32)
 
 
-def init_state(scene, **_):
+def init_state(scene, options):
     """The first frame's state: frame 0."""
     return {"frame": jnp.int32(0)}
 
 
-def apply(params, inputs, scene, state, *, rings, segments, inner_radius, outer_radius, octaves, displaced_octaves,
-          map_size, mip_levels, waves, tile_size, tile_ratio, period, frame_time, seed, frustum_skip, guard_scale,
-          guard_offset, blend_curve, ior, antialias, cost_smoothing):
+def apply(params, inputs, scene, state, options):
     """The displaced radial grid drawn over the optional earlier frame ``hdr`` [H, W, 3] / ``depth``
     [H, W] → ``hdr_water`` [H, W, 3], ``depth_water``, ``coverage_water`` [H, W], ``water_vertices`` [V, 3]."""
-    options = dict(rings=rings, segments=segments, inner_radius=inner_radius, outer_radius=outer_radius, octaves=octaves,
-                   displaced_octaves=displaced_octaves, map_size=map_size, mip_levels=mip_levels, waves=waves,
-                   tile_size=tile_size, tile_ratio=tile_ratio, period=period, seed=seed,
-                   frustum_skip=frustum_skip, guard_scale=guard_scale, guard_offset=guard_offset,
-                   blend_curve=blend_curve, ior=ior)
     check_options(**options)
-    t = water_time(params, state, frame_time=frame_time)
+    t = water_time(params, state, frame_time=options.frame_time)
     maps = pyramid(t, options)
     positions, normals, faces, inside, beta = displace(params, scene, maps, t, options)
     mesh = Mesh(positions, jnp.asarray(faces), normals, jnp.zeros((positions.shape[0], 2), jnp.float32),
@@ -516,7 +509,7 @@ def apply(params, inputs, scene, state, *, rings, segments, inner_radius, outer_
     under, depth = sky(rays, params), inputs.get("depth")
     if "hdr" in inputs:  # the sky shows where the earlier frame is empty
         under = inputs["hdr"] if depth is None else jnp.where((depth < 1.0)[..., None], inputs["hdr"], under)
-    buffers, drawn = draw_generated(mesh, materials, scene, hdr=under, depth=depth, antialias=antialias,
+    buffers, drawn = draw_generated(mesh, materials, scene, hdr=under, depth=depth, antialias=options.antialias,
                                     shade=_shade(params, scene, mesh, maps, t, options))
     fetches = jnp.sum(jnp.where(inside, 1.0 + ((beta > 0) & (beta < 1)), 0.0))
     counters = {"triangles_drawn": drawn["triangles_drawn"], "vertices_displaced": jnp.sum(inside).astype(jnp.int32),

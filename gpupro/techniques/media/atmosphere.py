@@ -296,19 +296,19 @@ def _counters(scene, steps, **per_sample):
             **{name: jnp.float32(rays * count) for name, count in per_sample.items()}}
 
 
-def apply(params, inputs, scene, *, optical_depth, steps, lut_size, world_thickness, rayleigh_phase):
+def apply(params, inputs, scene, options):
     """``hdr`` [H, W, 3] seen through the atmosphere at ``view_depth`` [H, W] (sky where ``coverage`` is 0)
     → ``hdr_atmosphere`` [H, W, 3], with ``steps`` midpoints per view ray and D(h, μ) from the table
     (``lut``) or the chapter's fit (``scale``)."""
-    geo = _geometry(params, inputs, scene, world_thickness)
+    geo = _geometry(params, inputs, scene, options.world_thickness)
     inner, thickness, h0 = params["planet_radius"], geo["thickness"], params["scale_height"]
-    if optical_depth == "lut":
-        table = build_lut(lut_size, inner=inner, thickness=thickness, scale_height=h0)
+    if options.optical_depth == "lut":
+        table = build_lut(options.lut_size, inner=inner, thickness=thickness, scale_height=h0)
         depth = lambda h, mu: lut_optical_depth(table, h, mu, inner=inner, thickness=thickness)
     else:
         depth = lambda h, mu: scale_optical_depth(h, mu, scale_height=h0)
     beta, _ = _extinction(params)
-    s = geo["far"][..., None] * ((jnp.arange(steps, dtype=jnp.float32) + 0.5) / steps)
+    s = geo["far"][..., None] * ((jnp.arange(options.steps, dtype=jnp.float32) + 0.5) / options.steps)
     h, mu_p, sun_p = _along(geo, s)
     h_b, mu_b, _ = _along(geo, geo["far"])
     sign = geo["sign"][..., None]
@@ -316,38 +316,39 @@ def apply(params, inputs, scene, *, optical_depth, steps, lut_size, world_thickn
     heights = jnp.concatenate([jnp.broadcast_to(geo["h_c"], sign.shape), h_b[..., None], h, h], axis=-1)
     cosines = jnp.concatenate([sign * geo["mu"][..., None], sign * mu_b[..., None], sign * mu_p, sun_p], axis=-1)
     depths = depth(heights, cosines)
-    at_camera, to_sun = depths[..., :1], depths[..., 2 + steps:]
+    at_camera, to_sun = depths[..., :1], depths[..., 2 + options.steps:]
     surface_depth = (sign * (at_camera - depths[..., 1:2]))[..., 0]
-    to_camera = sign * (at_camera - depths[..., 2:2 + steps])
+    to_camera = sign * (at_camera - depths[..., 2:2 + options.steps])
     attenuation = jnp.exp(-beta * (to_sun + to_camera)[..., None])
-    step = (geo["far"] / (steps * thickness))[..., None]
+    step = (geo["far"] / (options.steps * thickness))[..., None]
     inscattered = jnp.sum(density(h, h0)[..., None] * attenuation, axis=-2) * step
-    hdr = _composite(params, inputs, geo, inscattered, surface_depth, rayleigh_phase)
-    return {"hdr_atmosphere": hdr}, _counters(scene, steps, optical_depth_lookups=2 * steps + 2)
+    hdr = _composite(params, inputs, geo, inscattered, surface_depth, options.rayleigh_phase)
+    return {"hdr_atmosphere": hdr}, _counters(scene, options.steps, optical_depth_lookups=2 * options.steps + 2)
 
 
-def apply_reference(params, inputs, scene, *, steps, sun_samples, world_thickness, rayleigh_phase):
+def apply_reference(params, inputs, scene, options):
     """The same ``hdr_atmosphere`` [H, W, 3] by a fine march: ``steps`` midpoints per view ray, the
     optical depth to the camera as the running sum along it, and to the sun by ``sun_samples``-node
     quadrature at every sample."""
-    geo = _geometry(params, inputs, scene, world_thickness)
+    geo = _geometry(params, inputs, scene, options.world_thickness)
     inner, thickness, h0 = params["planet_radius"], geo["thickness"], params["scale_height"]
     beta, _ = _extinction(params)
-    step = geo["far"] / (steps * thickness)
+    step = geo["far"] / (options.steps * thickness)
 
     def march(carry, i):
         to_camera, inscattered = carry
-        h, _, sun_p = _along(geo, geo["far"] * ((i + 0.5) / steps))
+        h, _, sun_p = _along(geo, geo["far"] * ((i + 0.5) / options.steps))
         rho = density(h, h0)
-        to_sun = optical_depth(h, sun_p, inner=inner, thickness=thickness, scale_height=h0, nodes=sun_samples)
+        to_sun = optical_depth(h, sun_p, inner=inner, thickness=thickness, scale_height=h0, nodes=options.sun_samples)
         attenuation = jnp.exp(-beta * (to_sun + to_camera + 0.5 * rho * step)[..., None])
         return (to_camera + rho * step, inscattered + (rho * step)[..., None] * attenuation), None
 
     zeros = jnp.zeros_like(geo["far"])
     (surface_depth, inscattered), _ = jax.lax.scan(
-        march, (zeros, jnp.zeros(zeros.shape + (3,), jnp.float32)), jnp.arange(steps, dtype=jnp.float32))
-    hdr = _composite(params, inputs, geo, inscattered, surface_depth, rayleigh_phase)
-    return {"hdr_atmosphere": hdr}, _counters(scene, steps, sun_quadrature_points=2 * sun_samples * steps)
+        march, (zeros, jnp.zeros(zeros.shape + (3,), jnp.float32)), jnp.arange(options.steps, dtype=jnp.float32))
+    hdr = _composite(params, inputs, geo, inscattered, surface_depth, options.rayleigh_phase)
+    return {"hdr_atmosphere": hdr}, _counters(scene, options.steps,
+                                              sun_quadrature_points=2 * options.sun_samples * options.steps)
 
 
 INPUTS = (Buffer("hdr", "linear radiance of the visible surfaces (I_e), or of the background where empty", "RGB"),

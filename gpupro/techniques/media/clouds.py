@@ -152,11 +152,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.media import cloud_field, henyey_greenstein, pixel_rays, ray_box, trilinear
-from gpupro.media.cloud_field import (CLOUD_INPUTS, CLOUD_PARAMS, FIELD_EXAMPLE, FIELD_KEYS, FIELD_OPTIONS,
-                                      LATTICE_OPTION)
+from gpupro.media.cloud_field import CLOUD_INPUTS, CLOUD_PARAMS, FIELD_EXAMPLE, FIELD_OPTIONS, LATTICE_OPTION
 from gpupro.numerics import dot3
 from gpupro.shading.tiles import fill_light_lists, from_tiles, screen_bounds, tile_grid, tile_overlaps, to_tiles
-from gpupro.technique import (Buffer, Capacity, Check, Counter, Option, Technique, integer, number, one_of,
+from gpupro.technique import (Buffer, Capacity, Check, Counter, Option, Options, Technique, integer, number, one_of,
                               outside_trace, register)
 
 _BIG = 1e30  # "no cloud" distance: the chapter's +FLT_MAX, kept finite
@@ -968,21 +967,18 @@ def render_particles_tiled(params, luts, arrays, ray, sun, lists, *, shape, bin_
     return (*(untiled(a) for a in _resolve(pixels)), counts)
 
 
-_LUT_KEYS = ("optical_depth_lut", "scattering_lut", "scattering_radii", "scattering_orders", "integration_steps",
-             "lut_g_single", "lut_g_multiple", "lut_radius", "lut_extinction")
-
-
-def _lut_key(options):
+def _lut_key(options: Options):
     sizes = {"optical_depth_lut": 4, "scattering_lut": 3}
-    return tuple((k, cloud_field.dims(options[k], sizes[k]) if k in sizes else options[k]) for k in _LUT_KEYS)
+    return tuple((k, cloud_field.dims(v, sizes[k]) if k in sizes else v) for k, v in options.group("lut").items())
 
 
-def _field_key(options):
-    return tuple((k, cloud_field.centre_xz(options[k]) if k == "grid_centre" else options[k]) for k in FIELD_KEYS)
+def _field_key(options: Options):
+    return tuple((k, cloud_field.centre_xz(v) if k == "grid_centre" else v) for k, v in options.group("field").items())
 
 
-def render_clouds(params, inputs, scene, **options):
-    """The whole pass for the options of the ``clouds`` specification: ``(outputs, counters)``."""
+def apply(params, inputs, scene, options):
+    """Clouds over ``hdr`` [H, W, 3], depth-tested against ``view_depth`` [H, W] where ``coverage`` [H, W]
+    > 0: ``hdr_clouds`` [H, W, 3] (radiance) and ``cloud_transmittance`` [H, W]."""
     height, width = scene.camera.resolution
     factor = options["render_scale"]
     if height % factor or width % factor:
@@ -1051,25 +1047,6 @@ def render_clouds(params, inputs, scene, **options):
     return {"hdr_clouds": hdr, "cloud_transmittance": transmittance}, counters
 
 
-OPTION_NAMES = FIELD_KEYS + ("lattice_resolution", "light_steps", "optical_depth_lut", "scattering_lut",
-                             "scattering_radii", "scattering_orders", "integration_steps", "lut_g_single",
-                             "lut_g_multiple", "lut_radius", "lut_extinction", "render_scale", "blending",
-                             "binning", "bin_tile", "tile_particle_capacity", "tile_chunk", "particle_chunk",
-                             "hit_capacity", "sort_block")
-
-
-def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, ring_dimension, cell_layers,
-          cloud_coverage, cloud_coverage_scale, noise_scale, altitude_falloff, particle_radius, position_jitter,
-          radius_jitter, seed,
-          lattice_resolution, light_steps, optical_depth_lut, scattering_lut, scattering_radii, scattering_orders,
-          integration_steps, lut_g_single, lut_g_multiple, lut_radius, lut_extinction, render_scale, blending,
-          binning, bin_tile, tile_particle_capacity, tile_chunk, particle_chunk, hit_capacity, sort_block):
-    """Clouds over ``hdr`` [H, W, 3], depth-tested against ``view_depth`` [H, W] where ``coverage`` [H, W]
-    > 0: ``hdr_clouds`` [H, W, 3] (radiance) and ``cloud_transmittance`` [H, W]."""
-    options = {k: v for k, v in locals().items() if k in OPTION_NAMES}
-    return render_clouds(params, inputs, scene, **options)
-
-
 # ----------------------------------------------------------------------------------------------------------
 # Specification
 
@@ -1079,16 +1056,21 @@ POWER_OF_2 = Check(lambda v: isinstance(v, int) and not isinstance(v, bool) and 
 
 OPTIONS = FIELD_OPTIONS + (LATTICE_OPTION,) + (
     Option("light_steps", 16, integer(1), "steps of the light march (chapter: 16)"),
-    Option("optical_depth_lut", (32, 16, 32, 16), cloud_field.dims_check(4, 2), "optical-depth LUT size (N_φs, N_θs, N_φv, N_θv)"),
-    Option("scattering_lut", (32, 64, 16), cloud_field.dims_check(3, 2), "scattering LUT size (N_θs, N_φv, N_θv) on the surface"),
-    Option("scattering_radii", 8, integer(2), "radial slices N_r of the volume tables of the precompute"),
-    Option("scattering_orders", 18, integer(2, 64), "scattering orders computed (chapter: up to 18)"),
-    Option("integration_steps", 64, integer(1), "integration steps per ray in the precompute"),
-    Option("lut_g_single", 0.9, number(-0.99, 0.99), "HG g of the first scattering in the precompute (chapter: 0.9)"),
-    Option("lut_g_multiple", 0.7, number(-0.99, 0.99), "HG g of later scatterings in the precompute (chapter: 0.7)"),
-    Option("lut_radius", 200.0, number(0.0, strict_lo=True), "radius R of the reference sphere (chapter: 200 m)"),
+    Option("optical_depth_lut", (32, 16, 32, 16), cloud_field.dims_check(4, 2),
+           "optical-depth LUT size (N_φs, N_θs, N_φv, N_θv)", group="lut"),
+    Option("scattering_lut", (32, 64, 16), cloud_field.dims_check(3, 2),
+           "scattering LUT size (N_θs, N_φv, N_θv) on the surface", group="lut"),
+    Option("scattering_radii", 8, integer(2), "radial slices N_r of the volume tables of the precompute", group="lut"),
+    Option("scattering_orders", 18, integer(2, 64), "scattering orders computed (chapter: up to 18)", group="lut"),
+    Option("integration_steps", 64, integer(1), "integration steps per ray in the precompute", group="lut"),
+    Option("lut_g_single", 0.9, number(-0.99, 0.99), "HG g of the first scattering in the precompute (chapter: 0.9)",
+           group="lut"),
+    Option("lut_g_multiple", 0.7, number(-0.99, 0.99), "HG g of later scatterings in the precompute (chapter: 0.7)",
+           group="lut"),
+    Option("lut_radius", 200.0, number(0.0, strict_lo=True), "radius R of the reference sphere (chapter: 200 m)",
+           group="lut"),
     Option("lut_extinction", 0.07, number(0.0, strict_lo=True), "extinction β of the reference sphere in the "
-                                                                "precompute (chapter: 0.07 per metre)"),
+                                                                "precompute (chapter: 0.07 per metre)", group="lut"),
     Option("render_scale", 2, integer(1, 8), "particles are rendered at 1/render_scale resolution, then upsampled "
                                              "bilaterally (chapter: 2)"),
     Option("blending", "volume_aware", one_of(*BLENDINGS), "volume_aware (Eqs. 4.8–4.9) or alpha (the chapter's "

@@ -85,15 +85,12 @@ def cloud_grid(*, grid_resolution, **field_options):
     return _cached_grid(tuple(values.items()), cloud_field.dims(grid_resolution, 3))
 
 
-def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, ring_dimension, cell_layers,
-          cloud_coverage, cloud_coverage_scale, noise_scale, altitude_falloff, particle_radius, position_jitter,
-          radius_jitter, seed,
-          grid_resolution, paths_per_pixel, max_bounces, mode, path_seed):
+def apply(params, inputs, scene, options):
     """Path-traced clouds over ``hdr`` [H, W, 3], depth-tested against ``view_depth`` [H, W] where
     ``coverage`` [H, W] > 0: ``hdr_clouds`` and ``hdr_clouds_error`` [H, W, 3] (radiance, its standard
     error) and ``cloud_transmittance`` [H, W]."""
-    field = {k: v for k, v in locals().items() if k in FIELD_KEYS}
-    grid, lo, hi, count = cloud_grid(grid_resolution=grid_resolution, **field)
+    field = options.group("field")
+    grid, lo, hi, count = cloud_grid(grid_resolution=options.grid_resolution, **field)
     camera = scene.camera
     origins, directions, depth_to_t = pixel_rays(camera)
     t_max = jnp.where(inputs["coverage"] > 0, inputs["view_depth"] * depth_to_t, jnp.inf)
@@ -101,10 +98,12 @@ def apply(params, inputs, scene, *, grid_centre, altitude, cell_size, rings, rin
     medium = volpath.Medium(jnp.asarray(grid), jnp.asarray(lo), jnp.asarray(hi), params["extinction"],
                             params["density_scale"], params["albedo"], params["phase_g"])
     light = volpath.Illumination(sun / jnp.sqrt(dot3(sun, sun)), params["sun_color"], params["ambient_color"])
-    estimate = volpath.render(jax.random.PRNGKey(path_seed), origins, directions, t_max, inputs["hdr"], medium, light,
-                              paths_per_pixel=paths_per_pixel, max_bounces=max_bounces, mode=mode)
+    estimate = volpath.render(jax.random.PRNGKey(options.path_seed), origins, directions, t_max, inputs["hdr"],
+                              medium, light,
+                              paths_per_pixel=options.paths_per_pixel, max_bounces=options.max_bounces,
+                              mode=options.mode)
     counters = {"particles": jnp.int32(count), "grid_cells": jnp.int32(grid.size),
-                "paths": jnp.int32(camera.resolution[0] * camera.resolution[1] * paths_per_pixel),
+                "paths": jnp.int32(camera.resolution[0] * camera.resolution[1] * options.paths_per_pixel),
                 "density_lookups": estimate.density_lookups, "wavefront_steps": estimate.iterations}
     return {"hdr_clouds": estimate.mean, "hdr_clouds_error": estimate.stderr,
             "cloud_transmittance": estimate.transmittance}, counters

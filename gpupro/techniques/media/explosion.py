@@ -493,26 +493,28 @@ def render_explosion(params, inputs, camera, *, primitive, placement, noise_size
     return hdr, 1.0 - transmittance, {name: jnp.sum(count) for name, count in work.items()}
 
 
-def apply(params, inputs, scene, *, primitive, placement, noise_size, seed, octaves, noise_filter, steps, extra_step,
-          light_steps, light_interval, trace_steps, hull_octaves, opacity_threshold, tile, tile_batch):
+def apply(params, inputs, scene, options):
     """The explosion over ``hdr`` [H, W, 3], depth-tested with ``view_depth``, ``coverage`` [H, W], by sphere
     tracing, marching and the early out in tiles → ``hdr_explosion`` [H, W, 3], ``explosion_alpha`` [H, W]."""
     hdr, alpha, counters = render_explosion(
-        params, inputs, scene.camera, primitive=primitive, placement=placement, noise_size=noise_size, seed=seed,
-        octaves=octaves, noise_filter=noise_filter, steps=steps, extra_step=extra_step, light_steps=light_steps,
-        light_interval=light_interval, trace_steps=trace_steps, hull_octaves=hull_octaves,
-        opacity_threshold=opacity_threshold, tile=tile, tile_batch=tile_batch)
+        params, inputs, scene.camera, primitive=options.primitive, placement=options.placement,
+        noise_size=options.noise_size, seed=options.seed,
+        octaves=options.octaves, noise_filter=options.noise_filter, steps=options.steps,
+        extra_step=options.extra_step, light_steps=options.light_steps,
+        light_interval=options.light_interval, trace_steps=options.trace_steps, hull_octaves=options.hull_octaves,
+        opacity_threshold=options.opacity_threshold, tile=options.tile, tile_batch=options.tile_batch)
     return {"hdr_explosion": hdr, "explosion_alpha": alpha}, counters
 
 
-def apply_reference(params, inputs, scene, *, primitive, placement, noise_size, seed, octaves, noise_filter, steps,
-                    extra_step, light_steps, light_interval):
+def apply_reference(params, inputs, scene, options):
     """The same explosion by plain marching of every segment of the bounding sphere's chord, all pixels at once
     → ``hdr_explosion`` [H, W, 3], ``explosion_alpha`` [H, W]."""
     hdr, alpha, counters = render_explosion(
-        params, inputs, scene.camera, primitive=primitive, placement=placement, noise_size=noise_size, seed=seed,
-        octaves=octaves, noise_filter=noise_filter, steps=steps, extra_step=extra_step, light_steps=light_steps,
-        light_interval=light_interval, trace_steps=0, hull_octaves=0, opacity_threshold=None, tile=None)
+        params, inputs, scene.camera, primitive=options.primitive, placement=options.placement,
+        noise_size=options.noise_size, seed=options.seed,
+        octaves=options.octaves, noise_filter=options.noise_filter, steps=options.steps,
+        extra_step=options.extra_step, light_steps=options.light_steps,
+        light_interval=options.light_interval, trace_steps=0, hull_octaves=0, opacity_threshold=None, tile=None)
     return ({"hdr_explosion": hdr, "explosion_alpha": alpha},
             {name: counters[name] for name in ("march_steps", "light_march_steps")})
 

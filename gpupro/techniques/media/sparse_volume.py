@@ -464,30 +464,37 @@ def render_dense(params, inputs, camera, frame, parts, cube_map, *, voxels, marc
     return hdr, {"voxels_filled": jnp.int32(voxels ** 3), "particle_voxel_tests": tests, "march_steps": steps}
 
 
-def apply(params, inputs, scene, *, particles, seed, particle_radius, spread, metavoxels, brick, bin_capacity, working_set,
-          march_step, cube_map_size, noise_frequency, light_elevation, light_azimuth, placement, box_size):
+def apply(params, inputs, scene, options):
     """The sparse volume of the displaced spheres, marched over ``hdr`` [H, W, 3] up to ``view_depth`` [H, W]
     → ``hdr_sparse_volume`` [H, W, 3] (radiance), and the counters."""
-    _check(scene.camera, inputs, metavoxels, brick)
-    frame, parts, cube_map = _setup(params, scene, particles=particles, seed=seed, particle_radius=particle_radius,
-                                    spread=spread, cube_map_size=cube_map_size, noise_frequency=noise_frequency,
-                                    light_elevation=light_elevation, light_azimuth=light_azimuth, placement=placement,
-                                    box_size=box_size)
-    hdr, counters = render_sparse(params, inputs, scene.camera, frame, parts, cube_map, metavoxels=metavoxels, brick=brick,
-                                  bin_capacity=bin_capacity, working_set=working_set, march_step=march_step)
+    _check(scene.camera, inputs, options.metavoxels, options.brick)
+    frame, parts, cube_map = _setup(params, scene, particles=options.particles, seed=options.seed,
+                                    particle_radius=options.particle_radius,
+                                    spread=options.spread, cube_map_size=options.cube_map_size,
+                                    noise_frequency=options.noise_frequency,
+                                    light_elevation=options.light_elevation, light_azimuth=options.light_azimuth,
+                                    placement=options.placement,
+                                    box_size=options.box_size)
+    hdr, counters = render_sparse(params, inputs, scene.camera, frame, parts, cube_map, metavoxels=options.metavoxels,
+                                  brick=options.brick,
+                                  bin_capacity=options.bin_capacity, working_set=options.working_set,
+                                  march_step=options.march_step)
     return {"hdr_sparse_volume": hdr}, counters
 
 
-def apply_reference(params, inputs, scene, *, particles, seed, particle_radius, spread, metavoxels, brick, march_step,
-                    cube_map_size, noise_frequency, light_elevation, light_azimuth, placement, box_size):
+def apply_reference(params, inputs, scene, options):
     """The same particles in one dense volume by brute force, lit and marched once → ``hdr_sparse_volume``."""
-    _check(scene.camera, inputs, metavoxels, brick)
-    frame, parts, cube_map = _setup(params, scene, particles=particles, seed=seed, particle_radius=particle_radius,
-                                    spread=spread, cube_map_size=cube_map_size, noise_frequency=noise_frequency,
-                                    light_elevation=light_elevation, light_azimuth=light_azimuth, placement=placement,
-                                    box_size=box_size)
-    hdr, counters = render_dense(params, inputs, scene.camera, frame, parts, cube_map, voxels=metavoxels * brick,
-                                 march_step=march_step)
+    _check(scene.camera, inputs, options.metavoxels, options.brick)
+    frame, parts, cube_map = _setup(params, scene, particles=options.particles, seed=options.seed,
+                                    particle_radius=options.particle_radius,
+                                    spread=options.spread, cube_map_size=options.cube_map_size,
+                                    noise_frequency=options.noise_frequency,
+                                    light_elevation=options.light_elevation, light_azimuth=options.light_azimuth,
+                                    placement=options.placement,
+                                    box_size=options.box_size)
+    hdr, counters = render_dense(params, inputs, scene.camera, frame, parts, cube_map,
+                                 voxels=options.metavoxels * options.brick,
+                                 march_step=options.march_step)
     return {"hdr_sparse_volume": hdr}, counters
 
 

@@ -288,33 +288,32 @@ def _check(volume_size, shells):
                          f"got {volume_size}")
 
 
-def apply(params, inputs, scene, *, volume, volume_size, seed, shells, filter, steps, placement, box_size):
+def apply(params, inputs, scene, options):
     """SPAO of the procedural volume and its rendering: ``ao_volume`` [N, N, N] (unoccluded probability
     at the voxel centres) and ``hdr_volume`` [H, W, 3] (radiance), from ``hdr``, ``view_depth``, ``coverage``."""
-    _check(volume_size, shells)
-    o = opacity_volume(params, volume=volume, volume_size=volume_size, seed=seed)
-    ao = spao(o, params["normal_factor"], shells=shells, filter=filter)
-    lo, hi = volume_box(scene.camera, placement=placement, box_size=box_size)
+    _check(options.volume_size, options.shells)
+    o = opacity_volume(params, volume=options.volume, volume_size=options.volume_size, seed=options.seed)
+    ao = spao(o, params["normal_factor"], shells=options.shells, filter=options.filter)
+    lo, hi = volume_box(scene.camera, placement=options.placement, box_size=options.box_size)
     hdr, marched = render_volume(o, ao, inputs, scene.camera, lo, hi, color=params["color"], ambient=params["ambient"],
-                                 steps=steps)
-    counters = {"voxels": jnp.int32(volume_size ** 3), "shells": jnp.int32(shells),
-                "lookups_per_voxel": jnp.int32(shells + 1 + 6), "march_steps": marched}
+                                 steps=options.steps)
+    counters = {"voxels": jnp.int32(options.volume_size ** 3), "shells": jnp.int32(options.shells),
+                "lookups_per_voxel": jnp.int32(options.shells + 1 + 6), "march_steps": marched}
     return {"ao_volume": ao, "hdr_volume": hdr}, counters
 
 
-def apply_reference(params, inputs, scene, *, volume, volume_size, seed, shells, rays, ray_step, steps, placement,
-                    box_size):
+def apply_reference(params, inputs, scene, options):
     """Ray-traced obscurance of the same volume (``rays`` directions per voxel) and the same rendering."""
-    _check(volume_size, shells)
-    o = opacity_volume(params, volume=volume, volume_size=volume_size, seed=seed)
-    radius = 2.0 ** (shells - 1)
-    ao = ray_traced_obscurance(o, rays=rays, radius=radius, ray_step=ray_step)
-    lo, hi = volume_box(scene.camera, placement=placement, box_size=box_size)
+    _check(options.volume_size, options.shells)
+    o = opacity_volume(params, volume=options.volume, volume_size=options.volume_size, seed=options.seed)
+    radius = 2.0 ** (options.shells - 1)
+    ao = ray_traced_obscurance(o, rays=options.rays, radius=radius, ray_step=options.ray_step)
+    lo, hi = volume_box(scene.camera, placement=options.placement, box_size=options.box_size)
     hdr, marched = render_volume(o, ao, inputs, scene.camera, lo, hi, color=params["color"], ambient=params["ambient"],
-                                 steps=steps)
-    per_ray = max(1, math.ceil((radius - 0.5) / ray_step))
-    counters = {"voxels": jnp.int32(volume_size ** 3), "shells": jnp.int32(shells),
-                "lookups_per_voxel": jnp.int32(rays * per_ray), "march_steps": marched}
+                                 steps=options.steps)
+    per_ray = max(1, math.ceil((radius - 0.5) / options.ray_step))
+    counters = {"voxels": jnp.int32(options.volume_size ** 3), "shells": jnp.int32(options.shells),
+                "lookups_per_voxel": jnp.int32(options.rays * per_ray), "march_steps": marched}
     return {"ao_volume": ao, "hdr_volume": hdr}, counters
 
 

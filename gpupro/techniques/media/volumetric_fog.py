@@ -392,38 +392,39 @@ def _camera_state(camera, extent):
     return {"view": camera.view_matrix(), "view_projection": camera.view_projection(), "extent": extent}
 
 
-def init_state(scene, *, froxels_x, froxels_y, slices, fog_range, **_):
+def init_state(scene, options):
     """The first frame's state: no history (``valid`` false), frame 0, zero volumes [Y, X, N(, 3)]."""
-    shape = (froxels_y, froxels_x, slices)
+    shape = (options.froxels_y, options.froxels_x, options.slices)
     return {"in_scattering": jnp.zeros(shape + (3,), jnp.float32), "extinction": jnp.zeros(shape, jnp.float32),
             "frame": jnp.int32(0), "valid": jnp.bool_(False),
-            **_camera_state(scene.camera, _fog_range(scene.camera, fog_range))}
+            **_camera_state(scene.camera, _fog_range(scene.camera, options.fog_range))}
 
 
-def apply(params, inputs, scene, state, *, froxels_x, froxels_y, slices, depth_exponent, fog_range, background_fogged,
-          slice_integral, temporal, temporal_blend, shadowed_lights, shadow_resolution, shadow_pcf, noise_seed, light_chunk,
-          light_loop, slice_batch):
+def apply(params, inputs, scene, state, options):
     """Froxel volume (density, lighting), front-to-back accumulation, application to ``hdr`` [H, W, 3]
     at ``view_depth`` [H, W] → ``hdr_fog_volume`` [H, W, 3] and ``froxel_volume`` [Y, X, N + 1, 4] (S, T); ``state``
     from :func:`init_state` or the last frame (None: a first frame)."""
     camera = scene.camera
-    extent = _fog_range(camera, fog_range)
+    extent = _fog_range(camera, options.fog_range)
     frame = jnp.int32(0) if state is None else state["frame"]
-    jitter = jnp.asarray(JITTER)[frame % len(JITTER)] if temporal else jnp.float32(0.5)
-    maps = _shadow_maps(scene, shadowed_lights, shadow_resolution)
-    grid = dict(froxels_x=froxels_x, froxels_y=froxels_y, slices=slices, depth_exponent=depth_exponent)
-    scattering, sigma_t = froxel_medium(params, scene, jitter, extent, maps, **grid, shadow_pcf=shadow_pcf,
-                                        noise_seed=noise_seed, light_chunk=light_chunk, slice_batch=slice_batch,
-                                        light_loop=light_loop)
+    jitter = jnp.asarray(JITTER)[frame % len(JITTER)] if options.temporal else jnp.float32(0.5)
+    maps = _shadow_maps(scene, options.shadowed_lights, options.shadow_resolution)
+    grid = dict(froxels_x=options.froxels_x, froxels_y=options.froxels_y, slices=options.slices,
+                depth_exponent=options.depth_exponent)
+    scattering, sigma_t = froxel_medium(params, scene, jitter, extent, maps, **grid, shadow_pcf=options.shadow_pcf,
+                                        noise_seed=options.noise_seed, light_chunk=options.light_chunk,
+                                        slice_batch=options.slice_batch,
+                                        light_loop=options.light_loop)
 
-    _, _, depth_to_t = froxel_rays(camera, froxels_x=froxels_x, froxels_y=froxels_y)
-    boundaries = slice_depth(jnp.arange(slices + 1, dtype=jnp.float32) / slices, extent, depth_exponent=depth_exponent)
-    if temporal and state is not None:  # without a state, a first frame: no history
+    _, _, depth_to_t = froxel_rays(camera, froxels_x=options.froxels_x, froxels_y=options.froxels_y)
+    boundaries = slice_depth(jnp.arange(options.slices + 1, dtype=jnp.float32) / options.slices, extent,
+                             depth_exponent=options.depth_exponent)
+    if options.temporal and state is not None:  # without a state, a first frame: no history
         points, _ = froxel_points(camera, 0.5, extent, **grid)  # the froxels' centres
         history = jnp.concatenate([state["in_scattering"], state["extinction"][..., None]], axis=-1)
-        previous, inside = reproject(history, points, state, depth_exponent=depth_exponent)
+        previous, inside = reproject(history, points, state, depth_exponent=options.depth_exponent)
         reused = inside & state["valid"]
-        beta = jnp.where(reused, temporal_blend, 1.0)
+        beta = jnp.where(reused, options.temporal_blend, 1.0)
         scattering = beta[..., None] * scattering + (1.0 - beta[..., None]) * previous[..., :3]
         sigma_t = beta * sigma_t + (1.0 - beta) * previous[..., 3]
         reprojected = jnp.sum(reused).astype(jnp.float32)
@@ -431,11 +432,11 @@ def apply(params, inputs, scene, state, *, froxels_x, froxels_y, slices, depth_e
         reprojected = jnp.float32(0.0)
 
     lengths = jnp.diff(boundaries) * depth_to_t[..., None]  # [Y, X, N] ray length of each slice
-    integrated, transmittance = integrate_slices(scattering, sigma_t, lengths, slice_integral=slice_integral)
-    depth = _pixel_depth(inputs, extent, background_fogged)
-    hdr = fog_lookup(inputs["hdr"], depth, integrated, transmittance, extent, depth_exponent=depth_exponent)
+    integrated, transmittance = integrate_slices(scattering, sigma_t, lengths, slice_integral=options.slice_integral)
+    depth = _pixel_depth(inputs, extent, options.background_fogged)
+    hdr = fog_lookup(inputs["hdr"], depth, integrated, transmittance, extent, depth_exponent=options.depth_exponent)
 
-    froxels = float(froxels_x * froxels_y * slices)
+    froxels = float(options.froxels_x * options.froxels_y * options.slices)
     counters = {"froxels": jnp.float32(froxels), "light_evaluations": jnp.float32(froxels * scene.lights.count),
                 "march_steps": jnp.float32(froxels), "reprojected_froxels": reprojected}
     volume = jnp.concatenate([integrated, transmittance[..., None]], axis=-1)
@@ -472,15 +473,15 @@ def march(params, scene, depth, maps=None, *, steps: int, shadow_pcf: int, noise
     return accumulated.reshape(height, width, 3), jnp.exp(-optical).reshape(height, width)
 
 
-def apply_reference(params, inputs, scene, *, steps, fog_range, background_fogged, shadowed_lights, shadow_resolution,
-                    shadow_pcf, noise_seed, light_chunk, light_loop):
+def apply_reference(params, inputs, scene, options):
     """Per-pixel ray march of the medium and lights of ``volumetric_fog`` → ``hdr_fog_volume`` [H, W, 3]."""
-    extent = _fog_range(scene.camera, fog_range)
-    depth = _pixel_depth(inputs, extent, background_fogged)
-    maps = _shadow_maps(scene, shadowed_lights, shadow_resolution)
-    scattering, transmittance = march(params, scene, depth, maps, steps=steps, shadow_pcf=shadow_pcf,
-                                      noise_seed=noise_seed, light_chunk=light_chunk, light_loop=light_loop)
-    pixels = float(depth.size * steps)
+    extent = _fog_range(scene.camera, options.fog_range)
+    depth = _pixel_depth(inputs, extent, options.background_fogged)
+    maps = _shadow_maps(scene, options.shadowed_lights, options.shadow_resolution)
+    scattering, transmittance = march(params, scene, depth, maps, steps=options.steps, shadow_pcf=options.shadow_pcf,
+                                      noise_seed=options.noise_seed, light_chunk=options.light_chunk,
+                                      light_loop=options.light_loop)
+    pixels = float(depth.size * options.steps)
     counters = {"march_steps": jnp.float32(pixels), "light_evaluations": jnp.float32(pixels * scene.lights.count)}
     return {"hdr_fog_volume": inputs["hdr"] * transmittance[..., None] + scattering}, counters
 

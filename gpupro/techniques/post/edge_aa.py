@@ -103,7 +103,7 @@ def blend_taps(image, weight):
     return 0.25 * sum(taps)
 
 
-def apply(params, inputs, scene):
+def apply(params, inputs, scene, options):
     """``hdr`` [H, W, 3] blended across the G-buffer's edges → ``hdr_aa`` [H, W, 3] and ``edge_weight`` [H, W]."""
     camera = scene.camera
     weight = edge_weight(inputs["view_depth"], inputs["normal"], inputs["coverage"], camera.far,

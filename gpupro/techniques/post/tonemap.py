@@ -13,10 +13,10 @@ from gpupro.post.tonemapping import OPERATORS, apply_exposure, srgb_encode, tone
 from gpupro.technique import Buffer, Option, Param, Technique, one_of, register
 
 
-def apply(params, inputs, scene, *, operator):
+def apply(params, inputs, scene, options):
     """Exposes ``hdr`` [H, W, 3] by ``params["exposure"]`` stops, tone maps and encodes → ``ldr`` in [0, 1]."""
     exposed = apply_exposure(inputs["hdr"], params["exposure"])
-    return {"ldr": srgb_encode(tonemap(exposed, operator=operator))}
+    return {"ldr": srgb_encode(tonemap(exposed, operator=options.operator))}
 
 
 register(Technique(

@@ -11,7 +11,7 @@ from gpupro.raster.gbuffer import FRAGMENTS, SURFACE, fragments_from, gbuffer_fr
 from gpupro.technique import Technique, register
 
 
-def apply(params, inputs, scene):
+def apply(params, inputs, scene, options):
     """The G-buffer of the rasterizer's fragments → the surface buffers [H, W(, S)(, C)]."""
     buffers = gbuffer_from_fragments(fragments_from(inputs), scene.mesh, scene.materials, scene.camera)
     return {b.name: buffers[b.name] for b in SURFACE}

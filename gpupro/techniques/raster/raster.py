@@ -34,21 +34,23 @@ from gpupro.raster.setup import SAMPLE_PATTERNS
 from gpupro.scene.camera import to_clip
 from gpupro.technique import Capacity, Counter, Option, Technique, integer, one_of, optional, register
 
-def apply_tiled(params, inputs, scene, *, samples, cull_backfaces, tile, tile_capacity, pair_capacity, chunk_batch,
-                tail_batch, resolve):
+def apply_tiled(params, inputs, scene, options):
     """Tiled rasterization of ``scene.mesh`` from ``scene.camera`` → fragment buffers [H, W(, S)(, 3)]."""
-    fragments = rasterize_scene(scene, samples=samples, cull_backfaces=cull_backfaces, tile=tile, tile_capacity=tile_capacity,
-                                pair_capacity=pair_capacity, chunk_batch=chunk_batch, tail_batch=tail_batch,
-                                resolve=resolve)
+    fragments = rasterize_scene(scene, samples=options.samples, cull_backfaces=options.cull_backfaces,
+                                tile=options.tile, tile_capacity=options.tile_capacity,
+                                pair_capacity=options.pair_capacity, chunk_batch=options.chunk_batch,
+                                tail_batch=options.tail_batch,
+                                resolve=options.resolve)
     return fragment_buffers(fragments), fragments.counters
 
 
-def apply_reference(params, inputs, scene, *, samples, cull_backfaces):
+def apply_reference(params, inputs, scene, options):
     """Brute-force rasterization (every opaque triangle at every sample) → the same fragment buffers."""
     camera = scene.camera
     clip = to_clip(scene.mesh.positions, camera.view_projection())
     faces, _, translucent = split_faces(scene.mesh, scene.materials)
-    fragments = reference(clip, faces, resolution=camera.resolution, samples=samples, cull_backfaces=cull_backfaces)
+    fragments = reference(clip, faces, resolution=camera.resolution, samples=options.samples,
+                          cull_backfaces=options.cull_backfaces)
     return fragment_buffers(fragments), dict(fragments.counters, translucent_triangles=jnp.sum(translucent, dtype=jnp.int32))
 
 

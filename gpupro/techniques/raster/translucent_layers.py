@@ -98,15 +98,17 @@ def _peel_scene(inputs, scene, *, layer_capacity, cull_backfaces, rasterizer):
     return buffers, dict(counters, translucent_triangles=jnp.sum(translucent, dtype=jnp.int32))
 
 
-def apply(params, inputs, scene, *, layer_capacity, cull_backfaces):
+def apply(params, inputs, scene, options):
     """Depth peeling with the tiled rasterizer: ``layer_capacity`` translucent layers [K, H, W(, C)] in
     front of the opaque fragments ``inputs`` (``triangle_id``, ``depth`` [H, W])."""
-    return _peel_scene(inputs, scene, layer_capacity=layer_capacity, cull_backfaces=cull_backfaces, rasterizer=rasterize)
+    return _peel_scene(inputs, scene, layer_capacity=options.layer_capacity, cull_backfaces=options.cull_backfaces,
+                       rasterizer=rasterize)
 
 
-def apply_reference(params, inputs, scene, *, layer_capacity, cull_backfaces):
+def apply_reference(params, inputs, scene, options):
     """Depth peeling with the brute-force rasterizer (every translucent triangle at every pixel, each pass)."""
-    return _peel_scene(inputs, scene, layer_capacity=layer_capacity, cull_backfaces=cull_backfaces, rasterizer=reference)
+    return _peel_scene(inputs, scene, layer_capacity=options.layer_capacity, cull_backfaces=options.cull_backfaces,
+                       rasterizer=reference)
 
 
 OPAQUE = tuple(b._replace(optional=False) for b in FRAGMENTS if b.name in ("triangle_id", "depth"))

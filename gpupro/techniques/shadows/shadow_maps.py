@@ -14,15 +14,16 @@ from gpupro.shadows.maps import DEFAULT_BIAS, DEFAULT_NORMAL_OFFSET, build_shado
 from gpupro.technique import BOOLEAN, Buffer, Counter, Option, Technique, integer, number, optional, register
 
 
-def apply(params, inputs, scene, *, count, resolution, pcf, max_distance, bias, normal_offset, cull_backfaces):
+def apply(params, inputs, scene, options):
     """Shadow maps of the first ``count`` lights, looked up at the G-buffer's points → ``shadow`` [H, W, count]
     (a multisampled G-buffer [H, W, S, 3] gives [H, W, S, count]: each sample looked up at its own point)."""
-    maps = build_shadow_maps(scene.lights, scene.mesh, scene.camera, count=count, resolution=resolution,
-                             max_distance=max_distance, cull_backfaces=cull_backfaces)
+    maps = build_shadow_maps(scene.lights, scene.mesh, scene.camera, count=options.count, resolution=options.resolution,
+                             max_distance=options.max_distance, cull_backfaces=options.cull_backfaces)
     pixels = inputs["position"].shape[:-1]  # [H, W], or [H, W, S] multisampled
     points, normals = inputs["position"].reshape(-1, 3), inputs["normal"].reshape(-1, 3)
-    visibility = shadow_factor(maps, points, normals, bias=bias, normal_offset=normal_offset, pcf=pcf)
-    return {"shadow": visibility.reshape(pixels + (count,))}, maps.counters
+    visibility = shadow_factor(maps, points, normals, bias=options.bias, normal_offset=options.normal_offset,
+                               pcf=options.pcf)
+    return {"shadow": visibility.reshape(pixels + (options.count,))}, maps.counters
 
 
 register(Technique(
