@@ -74,8 +74,8 @@ def test_specification_is_complete(fog):
     assert fog.reference is None and fog.capacities == ()
 
 
-def test_options_are_keyword_only_and_defaults_live_in_the_specification():
-    generic.test_options_are_keyword_only_and_defaults_live_in_the_specification(ID)
+def test_options_reach_the_pass_as_one_record_declared_in_the_specification():
+    generic.test_options_reach_the_pass_as_one_record_declared_in_the_specification(ID)
 
 
 def test_reference_page_lists_every_option_and_parameter():

@@ -264,7 +264,7 @@ def _renderer(blending, hit_capacity):
     origins, directions, _ = pixel_rays(camera)
     ray = (origins.reshape(-1, 3), directions.reshape(-1, 3), jnp.full(256, C._BIG))
     luts = C.CloudLUTs(C.wrap_azimuth(jnp.ones((4, 8, 16))), None, C.wrap_azimuth(jnp.full((4, 8, 4), 0.1)))
-    params = {p.name: jnp.asarray(p.default, jnp.float32) for p in C.PARAMS}
+    params = {p.name: jnp.asarray(p.default, jnp.float32) for p in C.CLOUD_PARAMS}
     params["extinction"] = jnp.float32(1.5)
 
     @jax.jit
@@ -330,7 +330,7 @@ def _binned_renderer(blending, binning):
     surface = jnp.where(jnp.arange(32)[None, :] < 16, 10.5, C._BIG) * jnp.ones((32, 1))
     ray = (origins.reshape(-1, 3), directions.reshape(-1, 3), surface.reshape(-1))
     luts = C.CloudLUTs(C.wrap_azimuth(jnp.ones((4, 8, 16))), None, C.wrap_azimuth(jnp.full((4, 8, 4), 0.1)))
-    params = {p.name: jnp.asarray(p.default, jnp.float32) for p in C.PARAMS}
+    params = {p.name: jnp.asarray(p.default, jnp.float32) for p in C.CLOUD_PARAMS}
     params["extinction"] = jnp.float32(1.5)
     centres, radii, visible = (np.asarray(a) for a in BINNED)
     order = np.argsort(-np.linalg.norm(centres - np.array([0.0, 0.0, 10.0]), axis=-1))

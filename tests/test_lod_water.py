@@ -51,7 +51,7 @@ def _run(options, scene, frame=0, **params):
 
 
 def _options(**changes):
-    return {**water.validate_options(water.TECHNIQUE, {}), **OPTIONS, **changes}
+    return water.TECHNIQUE.options_of(OPTIONS, **changes)
 
 
 def test_the_displaced_radial_grid_has_no_cracks():

@@ -21,8 +21,8 @@ LIGHT = dict(light_elevation=50.0, light_azimuth=-40.0)  # oblique to every axis
 OPTIONS = dict(particles=8, seed=2, particle_radius=0.15, spread=0.5, metavoxels=GRID, brick=BRICK, march_step=1.0,
                cube_map_size=4, noise_frequency=1.5, placement=0.4, box_size=None, **LIGHT)
 SCENE = gp.scenes.sphere(resolution=RES)
-sparse_pass = jax.jit(functools.partial(S.apply, **OPTIONS, bin_capacity=8, working_set=48))
-dense_pass = jax.jit(functools.partial(S.apply_reference, **OPTIONS))
+sparse_pass = jax.jit(functools.partial(S.apply, options=SPEC.options_of(OPTIONS, bin_capacity=8, working_set=48)))
+dense_pass = jax.jit(functools.partial(S.apply_reference, options=registered()["sparse_volume_reference"].options_of(OPTIONS)))
 
 
 def _params(**overrides):
@@ -171,7 +171,7 @@ def test_an_empty_volume_leaves_the_background_unchanged():
     inputs = _inputs()
     out, counters = sparse_pass(_params(density=0.0), inputs, SCENE)
     np.testing.assert_array_equal(np.asarray(out["hdr_sparse_volume"]), np.asarray(inputs["hdr"]))
-    none = jax.jit(functools.partial(S.apply, **{**OPTIONS, "particles": 0}, bin_capacity=8, working_set=48))
+    none = jax.jit(functools.partial(S.apply, options=SPEC.options_of(OPTIONS, particles=0, bin_capacity=8, working_set=48)))
     out, counters = none(_params(), inputs, SCENE)
     np.testing.assert_array_equal(np.asarray(out["hdr_sparse_volume"]), np.asarray(inputs["hdr"]))
     assert int(counters["metavoxels_occupied"]) == 0 and int(counters["march_steps"]) == 0
@@ -182,7 +182,7 @@ def test_small_capacities_report_exactly_what_they_drop():
     occupied metavoxels past 3: the counters say so, the fullest bin and the occupied count say what
     suffices, and the frame is visibly wrong (which is why the entry points grow them)."""
     params, inputs = _params(), _inputs()
-    small = jax.jit(functools.partial(S.apply, **OPTIONS, bin_capacity=1, working_set=3))
+    small = jax.jit(functools.partial(S.apply, options=SPEC.options_of(OPTIONS, bin_capacity=1, working_set=3)))
     out, counters = small(params, inputs, SCENE)
     full, expected = sparse_pass(params, inputs, SCENE)
     frame = S.light_frame(SCENE.camera, **LIGHT, placement=0.4, box_size=None)

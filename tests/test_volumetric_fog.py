@@ -13,7 +13,7 @@ import pytest
 import gpupro as gp
 from gpupro.media import henyey_greenstein, pixel_rays
 from gpupro.techniques.media import volumetric_fog as vf
-from gpupro.technique import default_params, get, validate_options
+from gpupro.technique import default_params, get
 
 RES = (16, 16)
 GRID = {"froxels_x": 16, "froxels_y": 16, "slices": 16}  # columns through the pixel centres
@@ -36,8 +36,8 @@ def _froxels(**options):
 
 
 def _reference(**options):
-    values = validate_options(get("volumetric_fog_reference"), {"fog_range": RANGE, **options})
-    return jax.jit(lambda p, i, s: vf.apply_reference(p, i, s, **values)[0]["hdr_fog_volume"])
+    values = get("volumetric_fog_reference").options_of(options, fog_range=RANGE)
+    return jax.jit(lambda p, i, s: vf.apply_reference(p, i, s, values)[0]["hdr_fog_volume"])
 
 
 def _inputs(depth):

@@ -390,10 +390,10 @@ def particle_bounds(cloud: CloudParticles):
 # Declarations shared by the techniques drawing this field (the real-time clouds and their path-traced truth)
 
 
-def dims_check(count: int, lo: int = 1) -> Check:
-    """An option check: ``count`` integers >= ``lo`` (a list, or a string like "16x16x16"; :func:`dims`)."""
-    return Check(lambda v: (d := dims(v, count)) is not None and min(d) >= lo and not isinstance(v, int),
-                 f"{count} integers >= {lo}: a list, or a string like '{'x'.join(['16'] * count)}'")
+def dims_check(length: int, lo: int = 1) -> Check:
+    """An option check: ``length`` integers >= ``lo`` (a list, or a string like "16x16x16"; :func:`dims`)."""
+    return Check(lambda v: (d := dims(v, length)) is not None and min(d) >= lo and not isinstance(v, int),
+                 f"{length} integers >= {lo}: a list, or a string like '{'x'.join(['16'] * length)}'")
 
 
 CENTRE = Check(lambda v: centre_xz(v) is not None, "two finite numbers (x, z), or a string 'x, z'")

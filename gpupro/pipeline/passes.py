@@ -33,7 +33,7 @@ def unknown_technique(name: str, what: str = "technique") -> str:
     (:func:`did_you_mean`), or every id when none is close."""
     hint = did_you_mean(name, registered())
     return (f"unknown {what} {name!r}; {hint} (`gpupro list` lists all {len(registered())})" if hint
-            else f"unknown {what} {name!r} (known: {', '.join(registered())})")
+            else f"unknown {what} {name!r} (known: {', '.join(sorted(registered()))})")
 
 
 def _technique(technique: str | Technique) -> Technique:
