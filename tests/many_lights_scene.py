@@ -7,6 +7,7 @@ import gpupro as gp
 from gpupro.pipeline.capacity import render_without_overflow
 from gpupro.scene import DIRECTIONAL, POINT, SPOT, make_lights
 from gpupro.scene.lights import concatenate_lights
+from gpupro.shading import light_reaches
 from gpupro.shading.deferred import DEFERRED_INPUTS
 
 RES = (48, 48)
@@ -25,6 +26,16 @@ def world_at_pixel(x, y, depth):
     ray_view = np.array([(2 * x / w - 1) * tan * w / h, (1 - 2 * y / h) * tan, -1.0]) * depth
     view = np.asarray(CAMERA.view_matrix(), np.float64)
     return view[:3, :3].T @ (ray_view - view[:3, 3])
+
+
+def reaching_per_tile(lights, tile):
+    """(bool [T, N], int [T]): the lights reaching at least one covered sample of each tile of ``tile``²
+    pixels (row-major), and each tile's covered pixels, by a plain loop over the tiles of the per-pixel test."""
+    reaches = np.asarray(light_reaches(lights, GBUFFER["position"].reshape(-1, 3))).reshape(*RES, lights.count)
+    reaches = reaches & COVERED[..., None]
+    corners = [(y, x) for y in range(0, RES[0], tile) for x in range(0, RES[1], tile)]
+    return (np.array([reaches[y:y + tile, x:x + tile].any(axis=(0, 1)) for y, x in corners]),
+            np.array([COVERED[y:y + tile, x:x + tile].sum() for y, x in corners]))
 
 
 def mixed_lights(seed=0):

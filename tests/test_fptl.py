@@ -12,7 +12,8 @@ from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_kernel import tile_list_hits
 from gpupro.shading.tiles import cull_lights, shade_tiled, to_tiles
 from gpupro.techniques.lights.fptl import LIGHT_TYPES, build_light_lists, prune_light_lists, shade_fptl
-from many_lights_scene import CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, SCENE, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
+from many_lights_scene import (CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, SCENE,
+                               assert_capacity_grown_to_brute_force, assert_same, mixed_lights, reaching_per_tile)
 
 TILE = 16
 
@@ -45,8 +46,10 @@ def test_fptl_equals_brute_force_and_prunes_only_what_reaches_nothing(name):
     coarse = float(counters["coarse_lighting_computations"])
     assert exact == truly_reaching(lights)
     assert exact <= lighting <= coarse
+    reaching, pixels = reaching_per_tile(lights, TILE)
     listed = sum(int(counters[f"{t}_lights_listed"]) for t in LIGHT_TYPES)
-    assert int(counters["lights_pruned"]) >= 0 and (listed > 0) == (lighting > 0)
+    assert listed == int(reaching.sum()), "the pruned lists: per tile, the lights reaching a sample"
+    assert lighting == float(pixels @ reaching.sum(axis=1)), "each covered pixel evaluates its tile's reaching lights"
 
 
 def test_pruned_lists_are_exact_per_tile_and_sorted_by_type():
@@ -59,6 +62,8 @@ def test_pruned_lists_are_exact_per_tile_and_sorted_by_type():
     covered = np.asarray(to_tiles(jnp.asarray(GBUFFER["coverage"]) > 0, tile=TILE))
     kind = np.asarray(lights.kind)
     rank = np.select([kind == POINT, kind == SPOT, kind == CAPSULE], [0, 1, 2], 3)  # the order of LIGHT_TYPES
+    _, counters = fptl(GBUFFER, GBUFFER["view_depth"], lights, CAMERA, **OPTIONS, tile=TILE, tile_capacity=128)
+    assert int(counters["lights_pruned"]) == int(coarse.sum()) - int(reaching_per_tile(lights, TILE)[0].sum())
     for t in range(lists.shape[0]):
         reaching = np.asarray(light_reaches(lights, points[t]))[covered[t]].any(axis=0)
         entries = lists[t][lists[t] >= 0]

@@ -10,7 +10,7 @@ from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import accumulate_lights, light_reaches, view_directions
 from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_linked_list import (build_light_linked_list, downsample_max_depth, fill_pool,
-                                              linked_list_bytes, shade_light_linked_list, shade_samples)
+                                              shade_light_linked_list, shade_samples)
 from many_lights_scene import (
     CAMERA, COVERED, GBUFFER, OPTIONS, RES, assert_same, mixed_lights, ten_thousand_lights, world_at_pixel,
 )
@@ -66,14 +66,24 @@ def test_ten_thousand_lights_equal_brute_force():
     assert float(counters["lighting_computations"]) < 0.2 * 48 * 48 * 10_000
 
 
-def test_memory_formula_reproduces_the_chapter():
-    mib = 2.0 ** 20
-    assert linked_list_bytes(1920, 1080, 32) / mib == 506.25
-    assert round(linked_list_bytes(1920, 1080, 32, resolution_scale=8) / mib, 2) == 7.91
-    _, counters = lll_shade(GBUFFER, LIGHTS["hundred"], CAMERA, **OPTIONS, resolution_scale=SCALE,
-                            pool_capacity=1 << 16, list_capacity=128)
-    mean_links = int(counters["links_needed"]) / LLL_PIXELS
-    assert int(counters["light_list_bytes"]) == pytest.approx(linked_list_bytes(*RES, mean_links, resolution_scale=SCALE))
+def thirty_two_per_pixel(seed=6):
+    """100 point lights, 32 of which hold the whole box and the eye (every LLL pixel lists them, the
+    software depth test keeps them: their shells start on the near plane) and 68 small ones behind the eye
+    (no pixel ray meets them): exactly k = 32 links per LLL pixel, the chapter's example."""
+    rng = np.random.default_rng(seed)
+    eye = np.asarray(CAMERA.eye)
+    everywhere = eye + [0.0, 0.0, 10.8] + rng.uniform(-0.5, 0.5, (32, 3))  # the box centre: 11 units from the eye
+    behind = eye + rng.uniform(-1.0, 1.0, (68, 3)) - [0.0, 0.0, 4.0]  # ≥ 3 units behind the eye, radius 0.5
+    return make_lights(np.full(100, POINT), position=np.concatenate([everywhere, behind]),
+                       color=rng.uniform(0.05, 0.2, (100, 3)), range=np.r_[np.full(32, 40.0), np.full(68, 0.5)])
+
+
+def test_memory_is_the_chapters_at_32_lights_per_pixel():
+    """§1.5: 32 lights per pixel at 1920 × 1080 take 506.25 MB (MiB) of links; memory is linear in the LLL
+    pixels, so a frame of W' × H' LLL pixels with 32 lights each must store 506.25 MiB · W'H' / (1920 · 1080)."""
+    counters = check_against_brute_force(thirty_two_per_pixel())
+    assert int(counters["max_lights_per_pixel"]) == 32 and int(counters["links_needed"]) == 32 * LLL_PIXELS
+    assert int(counters["light_list_bytes"]) == 506.25 * 2**20 * LLL_PIXELS / (1920 * 1080)
 
 
 def test_depth_is_downsampled_by_a_max_filter_with_empty_pixels_far():

@@ -57,39 +57,6 @@ def _rotation(a, b, v):
     return v * cosine + np.cross(k, v) * sine + k * np.sum(k * v, axis=-1, keepdims=True) * (1.0 - cosine)
 
 
-def _reference_step(x, previous, frame, wind, gravity, spheres):
-    """The module docstring's steps 1–4 transcribed in float64, knot by knot (all masters active)."""
-    dt, n = SIM["time_step"], REST.shape[1]
-    rest = REST.astype(np.float64)
-    edges = np.diff(rest, axis=1)
-    lengths = np.linalg.norm(edges, axis=-1, keepdims=True)
-    y = x + (1.0 - SIM["damping"]) * (x - previous)
-    y[:, :, 1] -= gravity * dt * dt
-    y[:, 0] = rest[:, 0]
-    seconds, p, wind = (frame + 1) * dt, SIM["wind_perturbation"], np.asarray(wind, np.float64)
-    gust = wind * (1.0 + p * np.sin(2.0 * np.pi * SIM["wind_frequency"] * seconds + BLADES.wind_phase))[:, None]
-    gust = gust + p * np.linalg.norm(wind) * BLADES.wind_jitter
-    y += dt * dt * (np.arange(n) / (n - 1))[None, :, None] * gust[:, None]
-    centres = [np.array([sx, float(G.terrain_height(jnp.float32(sx), jnp.float32(sz), **TERRAIN)) + sy, sz])
-               for sx, sy, sz, _ in spheres]
-
-    def collide(y):
-        for centre, (*_, r) in zip(centres, spheres):
-            d = y[:, 1:] - centre
-            distance = np.linalg.norm(d, axis=-1, keepdims=True)
-            y[:, 1:] = np.where(distance < r, centre + r * d / distance, y[:, 1:])
-        return y
-
-    for _ in range(SIM["constraint_iterations"]):
-        for i in range(n - 1):
-            shape = edges[:, 0] if i == 0 else _rotation(_unit(edges[:, i - 1]), _unit(y[:, i] - y[:, i - 1]), edges[:, i])
-            moved = y[:, i + 1] + SIM["stiffness"] * (y[:, i] + shape - y[:, i + 1])
-            y[:, i + 1] = y[:, i] + lengths[:, i] * _unit(moved - y[:, i])
-        y = collide(y)
-    y[:, 1:, 1] = np.maximum(y[:, 1:, 1], y[:, :1, 1])
-    return collide(y), x
-
-
 def _scene():
     scene = gp.scenes.plane(resolution=(32, 32))
     return scene.replace(camera=gp.scene.make_camera((0.3, 0.8, 2.2), (0.0, 0.1, 0.0), near=0.05, far=6.0,
@@ -154,16 +121,59 @@ def test_lod_cost_is_smooth_and_counts_the_selected_blades_at_zero_temperature()
         G.lod_cost(dict(params, lod_threshold=jnp.float32(np.nan)), scene, **options)
 
 
-def test_simulation_step_equals_a_float64_transcription_of_its_equations():
-    wind, sphere = (10.0, 0.0, 4.0), (0.1, 0.25, 0.0, 0.25)  # a ball among the blades (see the collision test)
-    x = previous = REST.astype(np.float64)
-    for steps in range(1, 7):
-        x, previous = _reference_step(x.copy(), previous, steps - 1, wind, 9.81, (sphere,))
-        if steps in (1, 6):
-            simulated, _ = _simulate(steps, wind=wind, spheres=(sphere,))
-            np.testing.assert_allclose(simulated, x, atol=2e-5, err_msg=f"{steps} steps")
-    calm, _ = _reference_step(REST.astype(np.float64), REST.astype(np.float64), 0, (0.0, 0.0, 0.0), 9.81, ())
-    assert np.abs(_simulate(1, wind=wind, spheres=(sphere,))[0] - calm).max() > 1e-3  # wind and ball matter
+def _bent(angle):
+    """The rest blades turned rigidly about their roots by ``angle`` (radians) in their own (vertical) planes,
+    and those planes' unit normals [M, 3]."""
+    normal = _unit(np.cross([0.0, 1.0, 0.0], (REST[:, -1] - REST[:, 0]) * (1.0, 0.0, 1.0)))[:, None]
+    arm = REST - REST[:, :1]
+    c, s = np.cos(angle), np.sin(angle)
+    turned = arm * c + np.cross(normal, arm) * s + normal * np.sum(normal * arm, -1, keepdims=True) * (1.0 - c)
+    return REST[:, :1] + turned, normal[:, 0]
+
+
+def test_a_bent_blade_springs_back_to_its_rest_shape_in_its_own_plane():
+    """Released from a rigid bend of ±0.3 rad at rest, with no gravity, wind or spheres, the local shape
+    constraint returns every blade to its rest shape; the forces and targets all lie in the blade's plane,
+    so it never leaves it, and the edge lengths hold at every step."""
+    for angle in (-0.3, 0.3):
+        bent, normal = _bent(angle)
+        assert np.abs(bent[:, 1:, 1] - bent[:, :1, 1]).min() > 0.02  # above the root: the ground rule stays idle
+        state = {"positions": jnp.asarray(bent, jnp.float32), "previous": jnp.asarray(bent, jnp.float32),
+                 "frame": jnp.int32(0)}
+        deviation = [np.abs(bent - REST).max()]
+        for _ in range(40):
+            state = _stepper(0)(state, jnp.arange(M, dtype=jnp.int32), jnp.int32(M), jnp.zeros(3, jnp.float32),
+                                jnp.float32(0.0), jnp.zeros((0, 4), jnp.float32))
+            x = np.asarray(state["positions"])
+            deviation.append(np.abs(x - REST).max())
+            assert np.abs(np.einsum("mnk,mk->mn", x - REST[:, :1], normal)).max() < 1e-5  # in the blade's plane
+            np.testing.assert_allclose(np.linalg.norm(np.diff(x, axis=1), axis=-1), REST_LENGTHS, rtol=1e-4)
+        assert deviation[1] < deviation[0] and deviation[-1] < 1e-5 * deviation[0], deviation
+
+
+def test_under_gravity_each_edge_turns_further_than_the_one_below_it():
+    """Gravity bends every blade in its plane, progressively: each edge turns at least as far from its rest
+    direction (away from the vertical) as its parent, because the local shape target of an edge carries its
+    parent's rotation, R(ê⁰ → ê) e⁰, on top of its own bending."""
+    x, _ = _simulate(30)
+    lean = _unit((REST[:, -1] - REST[:, 0]) * (1.0, 0.0, 1.0))
+    angle = lambda p: np.arctan2(np.einsum("mnk,mk->mn", np.diff(p, axis=1), lean), np.diff(p, axis=1)[..., 1])
+    turned = angle(x) - angle(REST)
+    assert (turned > 0).all() and (np.diff(turned, axis=1) > 0).all()
+
+
+def test_the_local_shape_rotation_is_the_smallest_rotation():
+    """R(a → b), the rotation of the local shape targets, against Rodrigues' formula for the rotation about
+    a × b by the angle from a to b: it takes a to b, fixes a × b and keeps lengths."""
+    rng = np.random.default_rng(8)
+    a, b = _unit(rng.normal(size=(200, 3))), _unit(rng.normal(size=(200, 3)))
+    b[:20] = _unit(a[:20] + 0.01 * rng.normal(size=(20, 3)))  # nearly parallel
+    b = np.where(np.sum(a * b, -1, keepdims=True) < -0.9, -b, b)  # not nearly opposite: float32 loses 1 + a·b there
+    v = rng.normal(size=(200, 3))
+    rotate = lambda *x: np.asarray(G._rotate(*(jnp.asarray(y, jnp.float32) for y in x)))
+    np.testing.assert_allclose(rotate(a, b, v), _rotation(a, b, v), atol=2e-5)
+    np.testing.assert_allclose(rotate(a, b, a), b, atol=1e-5)
+    np.testing.assert_allclose(rotate(a, b, np.cross(a, b)), np.cross(a, b), atol=1e-5)
 
 
 def test_edge_lengths_are_preserved_in_wind():

@@ -1,5 +1,7 @@
 """Tiled shading (gpupro.techniques.lights.tiled) against brute-force deferred shading on the Cornell box."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,8 +11,9 @@ from gpupro.scene import POINT, SPOT, make_lights, no_lights
 from gpupro.shading import light_reaches
 from gpupro.shading.deferred import shade_deferred
 from gpupro.shading.light_bounds import light_spheres
-from gpupro.shading.tiles import shade_tiled
-from many_lights_scene import CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES, assert_capacity_grown_to_brute_force, assert_same, mixed_lights
+from gpupro.shading.tiles import cull_lights, shade_tiled
+from many_lights_scene import (CAMERA, COVERED, GBUFFER, GROWTH_TEST_IS_SLOW, OPTIONS, RES,
+                               assert_capacity_grown_to_brute_force, assert_same, mixed_lights, reaching_per_tile)
 
 STATIC = ("distribution", "light_chunk", "tile", "tile_capacity", "depth_bounds")
 
@@ -35,14 +38,19 @@ def test_tiled_equals_brute_force(name, tile, depth_bounds):
     assert_same(fast, slow)
     assert int(counters["tile_list_overflow"]) == 0
     assert int(counters["tiles"]) == (RES[0] // tile) * (RES[1] // tile)
-    assert int(counters["light_list_bytes"]) == 4 * int(counters["tiles"]) * min(128, LIGHTS[name].count)
+    lists, _ = jax.eval_shape(functools.partial(cull_lights, tile=tile, tile_capacity=128, depth_bounds=depth_bounds),
+                              LIGHTS[name], CAMERA, GBUFFER["view_depth"], GBUFFER["coverage"])
+    assert int(counters["light_list_bytes"]) == lists.size * lists.dtype.itemsize, "the index array culling allocates"
     lighting, exact = float(counters["lighting_computations"]), float(counters["exact_lighting_computations"])
     # Conservative bounds: every light that truly reaches a pixel is in its tile's list.
     points = jnp.asarray(GBUFFER["position"]).reshape(-1, 3)
     truth = float(np.sum(np.asarray(light_reaches(LIGHTS[name], points)) & COVERED.reshape(-1, 1)))
     assert exact == truth
     assert exact <= lighting <= float(slow_counters["lighting_computations"])
-    assert 0.0 <= float(counters["false_positive_rate"]) < 1.0
+    # A tile lists at least the lights reaching one of its samples, and all its covered pixels evaluate them.
+    reaching, pixels = reaching_per_tile(LIGHTS[name], tile)
+    assert float(pixels @ reaching.sum(axis=1)) <= lighting
+    assert float(counters["false_positive_rate"]) == pytest.approx(1.0 - truth / lighting if lighting else 0.0, abs=1e-6)
 
 
 def test_small_lights_cost_fewer_lighting_computations_with_depth_bounds():
