@@ -15,7 +15,7 @@ import pytest
 
 import gpupro as gp
 from gpupro.media import henyey_greenstein, pixel_rays, ray_box, trilinear
-from gpupro.technique import OptionError, default_params, get, validate_options
+from gpupro.technique import OptionError, default_params, get
 from gpupro.techniques.media import clouds as C
 from gpupro.techniques.media import clouds_reference
 
@@ -483,14 +483,13 @@ def test_a_thin_sunlit_field_matches_the_path_traced_single_scattering(frame):
     model, _ = run({**params, "extinction": jnp.float32(beta), "multiple_scale": jnp.float32(0.0),
                     "ambient_color": jnp.zeros(3, jnp.float32), "sun_direction": jnp.asarray(sun, jnp.float32)}, inputs)
     spec = get("clouds_reference")
-    options = validate_options(spec, {**spec.example_options, "grid_resolution": THIN_GRID, "paths_per_pixel": 512,
-                                      "max_bounces": 1, "mode": "single"})
+    options = spec.options_of(spec.example_options, grid_resolution=THIN_GRID, paths_per_pixel=512, max_bounces=1,
+                              mode="single")
     truth, _ = clouds_reference.apply(default_params(spec, {
         "extinction": beta, "density_scale": float(params["density_scale"]), "phase_g": float(params["phase_g"]),
         "sun_direction": sun.tolist(), "sun_color": np.asarray(params["sun_color"]).tolist(),
-        "ambient_color": [0.0, 0.0, 0.0]}), inputs, scene, **options)
-    grid, lo, hi, _ = clouds_reference.cloud_grid(grid_resolution=THIN_GRID,
-                                                  **{k: options[k] for k in C.FIELD_KEYS})
+        "ambient_color": [0.0, 0.0, 0.0]}), inputs, scene, options)
+    grid, lo, hi, _ = clouds_reference.cloud_grid(grid_resolution=THIN_GRID, **options.group("field"))
     scale = beta * float(params["density_scale"])
     origins, directions, _ = pixel_rays(scene.camera)
     tau_view = float(_optical_depths(grid, lo, hi, origins, directions, scale).max())
