@@ -154,9 +154,7 @@ def test_sparse_volume_equals_the_dense_brute_force_volume():
 
     @jax.jit
     def volumes(params, scene):  # the volumes themselves
-        frame, parts, cube_map = S._setup(params, scene, **{k: OPTIONS[k] for k in (
-            "particles", "seed", "particle_radius", "spread", "cube_map_size", "noise_frequency", "light_elevation",
-            "light_azimuth", "placement", "box_size")})
+        frame, parts, cube_map = S._setup(params, scene, **SPEC.options_of(OPTIONS).group("setup"))
         bricks, table, _ = S.sparse_volume(params, frame, parts, cube_map, metavoxels=GRID, brick=BRICK, bin_capacity=8,
                                            working_set=48)
         return bricks, table, S.dense_volume(params, frame, parts, cube_map, voxels=N)[0]

@@ -16,6 +16,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from gpupro.technique import Option, integer, number
+
 
 def _hash_bits(ix: jax.Array, iz: jax.Array, salt: jax.Array) -> jax.Array:
     """24 mixed bits (uint32 below 2^24) per integer lattice point (int32 arrays), mixed with ``salt`` (uint32)."""
@@ -81,8 +83,24 @@ def height_normals(heights: jax.Array, spacing) -> jax.Array:
     return n / jnp.linalg.norm(n, axis=-1, keepdims=True)
 
 
-TERRAIN_KEYS = ("terrain_amplitude", "terrain_wavelength", "terrain_octaves", "terrain_seed", "terrain_elevation")
-"""The options of the LOD techniques that set their fBm terrain: the keywords of :func:`terrain_height`."""
+def terrain_options(*, amplitude: float, wavelength: float, octaves: int, group=("terrain",)) -> tuple[Option, ...]:
+    """The options of a LOD technique that set its fBm terrain (the keywords of :func:`terrain_height`),
+    declared once for every technique that draws one, with that technique's defaults: ``amplitude`` and
+    ``wavelength`` (world units), ``octaves``; seed 0 and elevation 0 for all. ``group``: the option
+    groups they belong to (``"terrain"`` at least, read back with ``options.group("terrain")``)."""
+    return (
+        Option("terrain_amplitude", amplitude, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])",
+               group=group),
+        Option("terrain_wavelength", wavelength, number(0.0, strict_lo=True),
+               "λ of the terrain's first octave (world units)", group=group),
+        Option("terrain_octaves", octaves, integer(1), "octaves of the fBm terrain", group=group),
+        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain", group=group),
+        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)", group=group),
+    )
+
+
+TERRAIN_KEYS = tuple(o.name for o in terrain_options(amplitude=0.0, wavelength=1.0, octaves=1))
+"""The terrain options' names: the keywords of :func:`terrain_height`."""
 
 
 def terrain_height(x, z, *, terrain_amplitude, terrain_wavelength, terrain_octaves, terrain_seed,

@@ -119,7 +119,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gpupro.lod import (continuous_surface, draw_generated, frame_buffers, frame_outputs, height_normals,
-                        terrain_height, terrain_materials)
+                        terrain_height, terrain_materials, terrain_options)
 from gpupro.media.rays import pixel_rays
 from gpupro.numerics import dot3
 from gpupro.raster.surface import bend_towards_viewer, normalize
@@ -537,13 +537,7 @@ TECHNIQUE = register(Technique(
                group="levels"),
         Option("base_spacing", 1.0, number(0.0, strict_lo=True),
                "sample spacing s_0 of the finest level (world units)", group="levels"),
-        Option("terrain_amplitude", 12.0, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])",
-               group="terrain"),
-        Option("terrain_wavelength", 64.0, number(0.0, strict_lo=True),
-               "λ of the terrain's first octave (world units)", group="terrain"),
-        Option("terrain_octaves", 6, integer(1), "octaves of the fBm terrain", group="terrain"),
-        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain", group="terrain"),
-        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)", group="terrain"),
+    ) + terrain_options(amplitude=12.0, wavelength=64.0, octaves=6) + (
         Option("update_rows", 16, integer(1), "U: rows and columns of a level the incremental update writes per frame"),
         Option("level_colors", False, BOOLEAN, "colour each level's triangles (Figure 2-2) instead of one terrain colour"),
         Option("antialias", False, BOOLEAN, "blend the terrain's silhouettes analytically (gradients w.r.t. the vertices)"),

@@ -101,7 +101,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gpupro.lod import TERRAIN_KEYS, draw_generated, frame_buffers, frame_outputs, height_normals, terrain_height
+from gpupro.lod import (TERRAIN_KEYS, draw_generated, frame_buffers, frame_outputs, height_normals, terrain_height,
+                        terrain_options)
 from gpupro.numerics import dot3
 from gpupro.scene.materials import make_materials
 from gpupro.scene.mesh import Mesh, concatenate_meshes
@@ -676,14 +677,7 @@ TECHNIQUE = register(Technique(
         Option("slave_perturbation", 0.15, number(0.0, 1.0),
                "largest slave tip offset |δ| as a fraction of the blade length", group="growth"),
         Option("slave_lag", 1.0, number(0.0), "λ: steps of the master's velocity its slaves' tips lag behind"),
-        Option("terrain_amplitude", 0.3, number(0.0), "A of the fBm terrain (world units; heights in [−A, A])",
-               group=("growth", "terrain")),
-        Option("terrain_wavelength", 8.0, number(0.0, strict_lo=True),
-               "λ of the terrain's first octave (world units)", group=("growth", "terrain")),
-        Option("terrain_octaves", 4, integer(1), "octaves of the fBm terrain", group=("growth", "terrain")),
-        Option("terrain_seed", 0, integer(0), "seed of the fBm terrain", group=("growth", "terrain")),
-        Option("terrain_elevation", 0.0, number(), "height added to the fBm terrain (world units)", group=("growth",
-                                                                                                           "terrain")),
+    ) + terrain_options(amplitude=0.3, wavelength=8.0, octaves=4, group=("growth", "terrain")) + (
         Option("max_distance", None, optional(number(0.0, strict_lo=True)),
                "D_max of the 8-bit distance keys (world units); none: the camera's far distance"),
         Option("blade_capacity", 32768, integer(1), "masters drawn at most, each with its slaves (nearest first)"),

@@ -468,13 +468,7 @@ def apply(params, inputs, scene, options):
     """The sparse volume of the displaced spheres, marched over ``hdr`` [H, W, 3] up to ``view_depth`` [H, W]
     → ``hdr_sparse_volume`` [H, W, 3] (radiance), and the counters."""
     _check(scene.camera, inputs, options.metavoxels, options.brick)
-    frame, parts, cube_map = _setup(params, scene, particles=options.particles, seed=options.seed,
-                                    particle_radius=options.particle_radius,
-                                    spread=options.spread, cube_map_size=options.cube_map_size,
-                                    noise_frequency=options.noise_frequency,
-                                    light_elevation=options.light_elevation, light_azimuth=options.light_azimuth,
-                                    placement=options.placement,
-                                    box_size=options.box_size)
+    frame, parts, cube_map = _setup(params, scene, **options.group("setup"))
     hdr, counters = render_sparse(params, inputs, scene.camera, frame, parts, cube_map, metavoxels=options.metavoxels,
                                   brick=options.brick,
                                   bin_capacity=options.bin_capacity, working_set=options.working_set,
@@ -485,13 +479,7 @@ def apply(params, inputs, scene, options):
 def apply_reference(params, inputs, scene, options):
     """The same particles in one dense volume by brute force, lit and marched once → ``hdr_sparse_volume``."""
     _check(scene.camera, inputs, options.metavoxels, options.brick)
-    frame, parts, cube_map = _setup(params, scene, particles=options.particles, seed=options.seed,
-                                    particle_radius=options.particle_radius,
-                                    spread=options.spread, cube_map_size=options.cube_map_size,
-                                    noise_frequency=options.noise_frequency,
-                                    light_elevation=options.light_elevation, light_azimuth=options.light_azimuth,
-                                    placement=options.placement,
-                                    box_size=options.box_size)
+    frame, parts, cube_map = _setup(params, scene, **options.group("setup"))
     hdr, counters = render_dense(params, inputs, scene.camera, frame, parts, cube_map,
                                  voxels=options.metavoxels * options.brick,
                                  march_step=options.march_step)
@@ -503,24 +491,26 @@ INPUTS = (Buffer("hdr", "linear radiance of the visible surfaces", "RGB"),
           Buffer("coverage", "1 where a triangle is visible, 0 where empty", "Y"))
 OUTPUTS = (Buffer("hdr_sparse_volume", "linear radiance: the lit volume composited over hdr, depth-tested", "RGB"),)
 VOLUME_OPTIONS = (
-    Option("particles", 48, integer(0), "displaced spheres P drawn from the seed"),
-    Option("seed", 0, integer(0), "PRNG seed of the particles and of the noise cube map"),
+    Option("particles", 48, integer(0), "displaced spheres P drawn from the seed", group="setup"),
+    Option("seed", 0, integer(0), "PRNG seed of the particles and of the noise cube map", group="setup"),
     Option("particle_radius", 0.1, number(0.0, 0.5, strict_lo=True),
-           "largest inner radius, as a fraction of the volume's edge (radii uniform in [½, 1] × it)"),
-    Option("spread", 0.6, number(0.0, 1.0), "particle centres lie in the ball of radius spread · edge / 2"),
+           "largest inner radius, as a fraction of the volume's edge (radii uniform in [½, 1] × it)", group="setup"),
+    Option("spread", 0.6, number(0.0, 1.0), "particle centres lie in the ball of radius spread · edge / 2",
+           group="setup"),
     Option("metavoxels", 8, integer(1), "metavoxels M per edge of the light-aligned volume (M³ bins)"),
     Option("brick", 16, integer(1), "voxels B per metavoxel edge (N = M B voxels per volume edge)"),
     Option("march_step", 1.0, number(0.0, strict_lo=True), "eye-ray step Δ_v (voxels; 1: the chapter's b = 1/(1 + ρ))"),
-    Option("cube_map_size", 16, integer(1), "cells F per edge of the displacement cube map's faces"),
+    Option("cube_map_size", 16, integer(1), "cells F per edge of the displacement cube map's faces", group="setup"),
     Option("noise_frequency", 1.5, number(0.0, strict_lo=True), "noise lattice cells per unit of direction on the "
-                                                                "cube map's sphere"),
+                                                                "cube map's sphere", group="setup"),
     Option("light_elevation", 60.0, number(-90.0, 90.0), "directional light: degrees above the horizon (the "
-                                                         "volume's columns run along the light)"),
-    Option("light_azimuth", 25.0, number(-360.0, 360.0), "directional light: degrees from +z towards +x"),
+                                                         "volume's columns run along the light)", group="setup"),
+    Option("light_azimuth", 25.0, number(-360.0, 360.0), "directional light: degrees from +z towards +x",
+           group="setup"),
     Option("placement", 0.4, number(-100.0, 100.0), "centre of the volume's cube: target + placement · (eye − "
-                                                    "target), on the camera's axis"),
+                                                    "target), on the camera's axis", group="setup"),
     Option("box_size", None, optional(number(0.0, strict_lo=True)),
-           "edge of the volume's cube (world units; none: fills about half the view at its centre)"),
+           "edge of the volume's cube (world units; none: fills about half the view at its centre)", group="setup"),
 )
 PARAMS = (
     Param("density", 0.3, "1 per voxel", "largest density ρ_p of a particle (a voxel passes 1 / (1 + ρ))", lower=0.0),
