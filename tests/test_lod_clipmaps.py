@@ -20,9 +20,9 @@ RES = (64, 64)
 L = 4
 OPTIONS = dict(clip_levels=L, grid_size=15, base_spacing=0.25, terrain_amplitude=1.5, terrain_wavelength=4.0,
                terrain_octaves=3, terrain_elevation=-1.0)
-FULL = C.validate_options(C.TECHNIQUE, OPTIONS)
-TERRAIN = C._terrain(FULL)
-LEVELS = dict(clip_levels=L, grid_size=15, base_spacing=0.25)
+FULL = C.TECHNIQUE.options_of(OPTIONS)
+TERRAIN = FULL.group("terrain")
+LEVELS = FULL.group("levels")
 
 
 def _params(**overrides):
